@@ -1,0 +1,3 @@
+"""starenv: a Gymnasium-style simulator of spacecraft star sensors under dynamic conditions."""
+
+__version__ = "0.1.0"

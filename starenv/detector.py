@@ -1,0 +1,158 @@
+"""The image sensor: background, shot noise, dark current, hot pixels, cosmic rays, read noise, gain and the ADC.
+
+Electrons in a pixel over one exposure are ``Poisson(star + background + dark) + hot pixel + cosmic ray + read noise``,
+then clipped at the full well, divided by the gain, offset by the bias, rounded down and clipped to the ADC range.
+
+Speed without a toy model: the dense part (background + dark, shot noise and read noise) is drawn as one normal
+per pixel with the exact mean and variance ``lambda + read^2`` whenever the skewness of ``Poisson(lambda) + read``,
+``lambda / (lambda + read^2)^1.5``, is below ``GAUSSIAN_SKEW_LIMIT`` everywhere on the frame (large backgrounds, or
+read noise dominating a small one); otherwise the background's Poisson draw is exact.  Star signal, hot pixels and
+cosmic rays are always exact Poisson / sampled draws on the few pixels they touch, added to the dense part
+(independent Poisson variables add to a Poisson variable).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from starenv import checks
+from starenv.render import StarSignal
+
+GAUSSIAN_SKEW_LIMIT = 0.05
+
+
+@dataclass(frozen=True)
+class DetectorSpec:
+    """Sensor noise and readout, in electrons (e-), digital numbers (DN) and seconds.
+
+    Hot pixels are a fixed pattern drawn once per sensor: ``hot_pixel_fraction`` of the pixels with extra dark
+    current drawn log-normally around ``hot_pixel_dark_e_per_s`` (sigma 1 in ln).  Cosmic rays arrive as a Poisson
+    process of ``cosmic_ray_rate_per_cm2_s`` over the sensor area during the exposure; each deposits a log-normal
+    charge (median ``cosmic_ray_electrons``, sigma 0.5 in ln) along a straight track of random direction whose
+    length is exponential with mean ``cosmic_ray_track_px``.  ``line_time_s > 0`` makes a rolling shutter.
+    """
+
+    read_noise_e: float = 8.0
+    dark_current_e_per_s: float = 20.0
+    gain_e_per_dn: float = 4.0
+    bias_dn: float = 100.0
+    full_well_e: float = 30000.0
+    adc_bits: int = 12
+    hot_pixel_fraction: float = 1e-4
+    hot_pixel_dark_e_per_s: float = 3000.0
+    cosmic_ray_rate_per_cm2_s: float = 5.0
+    cosmic_ray_electrons: float = 2000.0
+    cosmic_ray_track_px: float = 2.0
+    line_time_s: float = 0.0
+
+    def __post_init__(self):
+        checks.in_range("read_noise_e", self.read_noise_e, 0.0, 1000.0, unit="e-")
+        checks.in_range("dark_current_e_per_s", self.dark_current_e_per_s, 0.0, 1e6, unit="e-/s")
+        checks.in_range("gain_e_per_dn", self.gain_e_per_dn, 0.0, 1e4, low_open=True, unit="e-/DN")
+        checks.integer("adc_bits", self.adc_bits, 1, 16)
+        checks.in_range("bias_dn", self.bias_dn, 0.0, 2.0**self.adc_bits - 1, unit="DN")
+        checks.in_range("full_well_e", self.full_well_e, 0.0, 1e8, low_open=True, unit="e-")
+        checks.probability("hot_pixel_fraction", self.hot_pixel_fraction)
+        checks.in_range("hot_pixel_dark_e_per_s", self.hot_pixel_dark_e_per_s, 0.0, 1e9, unit="e-/s")
+        checks.in_range("cosmic_ray_rate_per_cm2_s", self.cosmic_ray_rate_per_cm2_s, 0.0, 1e5, unit="1/cm^2/s")
+        checks.in_range("cosmic_ray_electrons", self.cosmic_ray_electrons, 0.0, 1e8, unit="e-")
+        checks.in_range("cosmic_ray_track_px", self.cosmic_ray_track_px, 0.0, 1e3, unit="px")
+        checks.in_range("line_time_s", self.line_time_s, 0.0, 1e-3, unit="s")
+
+    @property
+    def max_dn(self) -> int:
+        return 2**self.adc_bits - 1
+
+
+class Detector:
+    """One head's sensor: fixed pattern (hot pixels) drawn at construction, noise drawn per exposure."""
+
+    def __init__(
+        self,
+        spec: DetectorSpec,
+        width: int,
+        height: int,
+        pixel_pitch_m: float,
+        background_e_per_px_s: float | np.ndarray,
+        fixed_pattern_rng: np.random.Generator,
+    ):
+        self.spec = spec
+        self.shape = (int(height), int(width))
+        self.pixel_area_cm2 = (pixel_pitch_m * 100.0) ** 2
+        bg = np.asarray(background_e_per_px_s, dtype=np.float32)
+        if bg.ndim not in (0, 2) or (bg.ndim == 2 and bg.shape != self.shape):
+            raise ValueError(f"background_e_per_px_s must be a scalar or a {self.shape} map, got shape {bg.shape}")
+        checks.finite("background_e_per_px_s", bg)
+        if np.any(bg < 0):
+            raise ValueError("background_e_per_px_s must be >= 0 e-/px/s")
+        self.background_e_per_px_s = bg
+        n_pix = self.shape[0] * self.shape[1]
+        n_hot = int(fixed_pattern_rng.binomial(n_pix, spec.hot_pixel_fraction)) if spec.hot_pixel_fraction else 0
+        self.hot_index = np.sort(fixed_pattern_rng.choice(n_pix, size=n_hot, replace=False))
+        self.hot_rate_e_per_s = spec.hot_pixel_dark_e_per_s * fixed_pattern_rng.lognormal(0.0, 1.0, size=n_hot)
+        self._background_cache: tuple[float, np.ndarray, np.ndarray | None] | None = None
+        self._work = np.empty(self.shape, dtype=np.float32)  # read-out scratch, reused so its pages stay mapped
+
+    def _background(self, exposure_s: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """Mean background + dark electrons per pixel, and the per-pixel std of the Gaussian path (None: exact)."""
+        if self._background_cache is None or self._background_cache[0] != exposure_s:
+            lam = (self.background_e_per_px_s + np.float32(self.spec.dark_current_e_per_s)) * np.float32(exposure_s)
+            read2 = self.spec.read_noise_e**2
+            lo, hi = float(np.min(lam)), float(np.max(lam))
+            worst = min(max(2.0 * read2, lo), hi)  # lambda / (lambda + r^2)^1.5 peaks at lambda = 2 r^2
+            skew = worst / (worst + read2) ** 1.5 if worst + read2 > 0 else math.inf
+            std = np.sqrt(lam + np.float32(read2)).astype(np.float32) if skew < GAUSSIAN_SKEW_LIMIT else None
+            self._background_cache = (exposure_s, lam, std)
+        return self._background_cache[1], self._background_cache[2]
+
+    def read_out(self, signal: StarSignal, exposure_s: float, rng: np.random.Generator) -> np.ndarray:
+        """A uint16 frame (height, width) in DN for the given star signal (expected e-) and exposure (s).
+
+        Works in DN from the start (``e / gain + bias``) so the full-frame passes are few; the full well
+        (``min(e, full_well)``) is the clip at ``full_well / gain + bias``.
+        """
+        spec = self.spec
+        inv_gain = np.float32(1.0 / spec.gain_e_per_dn)
+        lam, std = self._background(exposure_s)
+        dn = self._work
+        if std is not None:
+            rng.standard_normal(dtype=np.float32, out=dn)
+            dn *= std * inv_gain
+            dn += lam * inv_gain + np.float32(spec.bias_dn)
+        else:
+            dn[...] = rng.poisson(np.broadcast_to(lam, self.shape))
+            if spec.read_noise_e > 0:
+                dn += rng.normal(0.0, spec.read_noise_e, self.shape).astype(np.float32)
+            dn *= inv_gain
+            dn += np.float32(spec.bias_dn)
+        flat = dn.reshape(-1)
+        if signal.shape != self.shape:
+            raise ValueError(f"signal is for a {signal.shape} sensor, this one is {self.shape}")
+        flat[signal.index] += rng.poisson(signal.electrons).astype(np.float32) * inv_gain
+        if len(self.hot_index):
+            flat[self.hot_index] += rng.poisson(self.hot_rate_e_per_s * exposure_s).astype(np.float32) * inv_gain
+        self._add_cosmic_rays(dn, exposure_s, rng, inv_gain)
+        top = min(float(spec.max_dn), spec.full_well_e / spec.gain_e_per_dn + spec.bias_dn)
+        np.clip(dn, 0.0, np.float32(top), out=dn)
+        return dn.astype(np.uint16)  # truncation = the ADC's floor for non-negative values
+
+    def _add_cosmic_rays(self, dn: np.ndarray, exposure_s: float, rng: np.random.Generator, inv_gain) -> None:
+        spec = self.spec
+        h, w = self.shape
+        mean_hits = spec.cosmic_ray_rate_per_cm2_s * self.pixel_area_cm2 * h * w * exposure_s
+        n_hits = int(rng.poisson(mean_hits)) if mean_hits > 0 else 0
+        if n_hits == 0:
+            return
+        start = rng.uniform([0.0, 0.0], [w - 1.0, h - 1.0], size=(n_hits, 2))
+        angle = rng.uniform(0.0, 2 * np.pi, n_hits)
+        length = rng.exponential(spec.cosmic_ray_track_px, n_hits) if spec.cosmic_ray_track_px > 0 else np.zeros(n_hits)
+        charge = spec.cosmic_ray_electrons * rng.lognormal(0.0, 0.5, n_hits)
+        for (x, y), a, length_px, q in zip(start, angle, length, charge, strict=True):
+            n_seg = max(1, math.ceil(length_px * 2))
+            s = (np.arange(n_seg) + 0.5) / n_seg * length_px
+            cols = np.clip(np.rint(x + s * math.cos(a)), 0, w - 1).astype(np.intp)
+            rows = np.clip(np.rint(y + s * math.sin(a)), 0, h - 1).astype(np.intp)
+            np.add.at(dn, (rows, cols), np.float32(q / n_seg) * inv_gain)

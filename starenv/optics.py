@@ -1,0 +1,317 @@
+"""Camera heads: pinhole projection, lens distortion and the body -> camera mounting.
+
+A head's camera frame has +Z along the boresight, +X along image columns and +Y along image rows; pixel centres sit at
+integer coordinates with (0, 0) the centre of the top-left pixel.  Projection of a camera-frame direction ``(X, Y, Z)``
+is the pinhole ``u = fx X/Z + cx``, ``v = fy Y/Z + cy`` (the *ideal* pixel position), followed by a distortion model
+that maps ideal -> distorted (measured) pixel positions.  Each model has a closed form in one direction and is inverted
+numerically (Newton) in the other, so both ``distort`` and ``undistort`` are available for every model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.polynomial import legendre as npleg
+from scipy.spatial.transform import Rotation
+
+from starenv import checks
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole parameters in pixels: focal lengths ``fx, fy`` and principal point ``cx, cy``; sensor size."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+
+class Distortion:
+    """Ideal -> distorted pixel mapping.  Subclasses give a closed form for one direction; Newton gives the other."""
+
+    def distort(self, xy: np.ndarray, k: Intrinsics) -> np.ndarray:
+        """Distorted pixel positions (n, 2) of ideal pinhole positions ``xy`` (n, 2)."""
+        return _newton_inverse(lambda p: self.undistort(p, k), xy)
+
+    def undistort(self, xy: np.ndarray, k: Intrinsics) -> np.ndarray:
+        """Ideal pinhole positions (n, 2) of distorted (measured) positions ``xy`` (n, 2)."""
+        return _newton_inverse(lambda p: self.distort(p, k), xy)
+
+
+def _newton_inverse(forward, target: np.ndarray, tol_px: float = 1e-9, max_iter: int = 50) -> np.ndarray:
+    """Solve ``forward(p) = target`` per point by Newton's method with a central-difference 2x2 Jacobian."""
+    target = np.asarray(target, dtype=np.float64)
+    p = target.copy()
+    h = 1e-4
+    for _ in range(max_iter):
+        r = forward(p) - target
+        if np.all(np.abs(r) < tol_px):
+            return p
+        jx = (forward(p + [h, 0.0]) - forward(p - [h, 0.0])) / (2 * h)
+        jy = (forward(p + [0.0, h]) - forward(p - [0.0, h])) / (2 * h)
+        det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+        if np.any(np.abs(det) < 1e-12):
+            break
+        dx = (jy[:, 1] * r[:, 0] - jy[:, 0] * r[:, 1]) / det
+        dy = (-jx[:, 1] * r[:, 0] + jx[:, 0] * r[:, 1]) / det
+        p = p - np.stack([dx, dy], axis=1)
+    r = np.abs(forward(p) - target)
+    if not np.all(r < 1e-6):
+        raise ValueError(f"distortion model is not invertible here (residual up to {np.nanmax(r):.3g} px)")
+    return p
+
+
+@dataclass(frozen=True)
+class NoDistortion(Distortion):
+    """The ideal pinhole."""
+
+    def distort(self, xy, k):
+        return np.asarray(xy, dtype=np.float64)
+
+    def undistort(self, xy, k):
+        return np.asarray(xy, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class BrownConrady(Distortion):
+    """Brown-Conrady radial (k1, k2, k3) and decentering (p1, p2) distortion in normalised coordinates.
+
+    Same convention as OpenCV: with ``x = (u - cx)/fx``, ``y = (v - cy)/fy`` and ``r^2 = x^2 + y^2``,
+    ``x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)`` and
+    ``y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y``.
+    """
+
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    def __post_init__(self):
+        for name in ("k1", "k2", "k3", "p1", "p2"):
+            checks.finite(f"BrownConrady.{name}", getattr(self, name), shape=())
+
+    def distort(self, xy, k):
+        xy = np.asarray(xy, dtype=np.float64)
+        x = (xy[:, 0] - k.cx) / k.fx
+        y = (xy[:, 1] - k.cy) / k.fy
+        r2 = x * x + y * y
+        radial = 1 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        xd = x * radial + 2 * self.p1 * x * y + self.p2 * (r2 + 2 * x * x)
+        yd = y * radial + self.p1 * (r2 + 2 * y * y) + 2 * self.p2 * x * y
+        return np.stack([xd * k.fx + k.cx, yd * k.fy + k.cy], axis=1)
+
+
+@dataclass(frozen=True)
+class RadialXY(Distortion):
+    """Seed 000's per-axis second-order radial model (its Eq. 1), in pixels.
+
+    The closed form is the *correction* the paper applies to a measured (distorted) position ``(x_d, y_d)``:
+    ``x - x0 = (x_d - x0)(1 + kx r^2)``, ``y - y0 = (y_d - y0)(1 + ky r^2)`` with ``r`` the distance of the measured
+    point from the distortion centre ``(x0, y0)`` in pixels (the principal point unless given) and ``kx, ky`` in px^-2.
+    The forward (ideal -> distorted) direction is its Newton inverse.
+    """
+
+    kx: float = 0.0
+    ky: float = 0.0
+    center: tuple[float, float] | None = None
+
+    def __post_init__(self):
+        checks.finite("RadialXY.kx", self.kx, shape=())
+        checks.finite("RadialXY.ky", self.ky, shape=())
+        if self.center is not None:
+            checks.finite("RadialXY.center", self.center, shape=(2,))
+
+    def undistort(self, xy, k):
+        xy = np.asarray(xy, dtype=np.float64)
+        x0, y0 = self.center if self.center is not None else (k.cx, k.cy)
+        dx, dy = xy[:, 0] - x0, xy[:, 1] - y0
+        r2 = dx * dx + dy * dy
+        return np.stack([x0 + dx * (1 + self.kx * r2), y0 + dy * (1 + self.ky * r2)], axis=1)
+
+
+def legendre_mode_count(order: int) -> int:
+    """Number of 2-D Legendre modes of total order <= ``order``: (n + 1)(n + 2)/2 (seed 003, Eq. 13)."""
+    return (order + 1) * (order + 2) // 2
+
+
+def legendre_basis(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
+    """Normalised 2-D Legendre modes ``b_m(x, y) = L_{l-k}(x) L_k(y)`` on [-1, 1]^2, shape (n, n_modes).
+
+    Mode index ``m = l(l + 1)/2 + k`` for ``0 <= k <= l <= order`` (seed 003, Eqs. 16-17), with
+    ``L_n = P_n sqrt((2n + 1)/2)`` (Eqs. 14-15).
+    """
+    eye = np.eye(order + 1)
+    norm = np.sqrt((2 * np.arange(order + 1) + 1) / 2.0)
+    lx = npleg.legval(np.asarray(x, dtype=np.float64), eye.T * norm[:, None]).T  # (n, order + 1): L_0..L_order
+    ly = npleg.legval(np.asarray(y, dtype=np.float64), eye.T * norm[:, None]).T
+    cols = [lx[:, total - k] * ly[:, k] for total in range(order + 1) for k in range(total + 1)]
+    return np.stack(cols, axis=1)
+
+
+@dataclass(frozen=True)
+class LegendreField(Distortion):
+    """Seed 003's 2-D Legendre distortion field (its Eq. 18): ``p_d = p + sum_m w_m b_m(p_n)``.
+
+    ``p_n`` is the ideal pixel position mapped to [-1, 1]^2 over the sensor (pixel edges -0.5 and W - 0.5 map to -1
+    and +1); ``coeffs_x``, ``coeffs_y`` hold one weight per mode in pixels, ordered as :func:`legendre_basis`.
+    """
+
+    coeffs_x: tuple[float, ...] = ()
+    coeffs_y: tuple[float, ...] = ()
+    order: int = field(init=False)
+
+    def __post_init__(self):
+        cx = checks.finite("LegendreField.coeffs_x", self.coeffs_x)
+        cy = checks.finite("LegendreField.coeffs_y", self.coeffs_y)
+        n = cx.size
+        order = int(round((math.sqrt(8 * n + 1) - 3) / 2)) if n else 0
+        if n == 0 or legendre_mode_count(order) != n or cy.size != n:
+            raise ValueError(
+                "LegendreField.coeffs_x and coeffs_y must each hold (n+1)(n+2)/2 weights for a total order n "
+                f"(1, 3, 6, 10, 15, 21, ...), got {cx.size} and {cy.size}"
+            )
+        object.__setattr__(self, "order", order)
+
+    def distort(self, xy, k):
+        xy = np.asarray(xy, dtype=np.float64)
+        xn = (xy[:, 0] + 0.5) * (2.0 / k.width) - 1.0
+        yn = (xy[:, 1] + 0.5) * (2.0 / k.height) - 1.0
+        b = legendre_basis(xn, yn, self.order)
+        return xy + np.stack([b @ np.asarray(self.coeffs_x), b @ np.asarray(self.coeffs_y)], axis=1)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """One camera head: resolution, pinhole intrinsics (px), distortion and the body -> camera mounting rotation.
+
+    ``pixel_pitch_m`` and ``focal_length_m`` are the physical values (``fx = focal_length_m / pixel_pitch_m``);
+    ``aperture_m`` is the entrance-pupil diameter used for photometry.
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    pixel_pitch_m: float
+    aperture_m: float
+    distortion: Distortion = NoDistortion()
+    mounting: Rotation = field(default_factory=Rotation.identity)
+
+    def __post_init__(self):
+        checks.integer("width", self.width, 8, 16384)
+        checks.integer("height", self.height, 8, 16384)
+        checks.positive("fx", self.fx, "px")
+        checks.positive("fy", self.fy, "px")
+        checks.in_range("cx", self.cx, -0.5, self.width - 0.5, unit="px")
+        checks.in_range("cy", self.cy, -0.5, self.height - 0.5, unit="px")
+        checks.in_range("pixel_pitch_m", self.pixel_pitch_m, 0.0, 1e-3, low_open=True, unit="m")
+        checks.in_range("aperture_m", self.aperture_m, 0.0, 1.0, low_open=True, unit="m")
+        if not isinstance(self.mounting, Rotation) or not self.mounting.single:
+            raise ValueError("mounting must be a single scipy Rotation (body -> camera)")
+        checks.finite("mounting", self.mounting.as_quat(), shape=(4,))
+        if not isinstance(self.distortion, Distortion):
+            raise ValueError(f"distortion must be a Distortion model, got {type(self.distortion).__name__}")
+        fov_x, fov_y = self.fov
+        if max(fov_x, fov_y) >= math.pi * 0.999:
+            raise ValueError(f"field of view must be below 180 deg, got {math.degrees(max(fov_x, fov_y)):.1f} deg")
+
+    @classmethod
+    def from_focal_length(
+        cls,
+        focal_length_m: float,
+        pixel_pitch_m: float,
+        width: int,
+        height: int,
+        f_number: float = 1.4,
+        **kwargs,
+    ) -> Camera:
+        """A head from physical focal length and pixel pitch (m), principal point at the sensor centre."""
+        f = checks.positive("focal_length_m", focal_length_m, "m")
+        pitch = checks.positive("pixel_pitch_m", pixel_pitch_m, "m")
+        n = checks.in_range("f_number", f_number, 0.5, 32.0)
+        fpx = f / pitch
+        kwargs.setdefault("cx", (width - 1) / 2.0)
+        kwargs.setdefault("cy", (height - 1) / 2.0)
+        return cls(width=width, height=height, fx=fpx, fy=fpx, pixel_pitch_m=pitch, aperture_m=f / n, **kwargs)
+
+    @classmethod
+    def from_fov(
+        cls,
+        fov_deg: float,
+        width: int,
+        height: int,
+        pixel_pitch_m: float,
+        f_number: float = 1.4,
+        **kwargs,
+    ) -> Camera:
+        """A head whose full horizontal field of view (edge to edge of the sensor) is ``fov_deg`` degrees."""
+        fov = checks.in_range("fov_deg", fov_deg, 0.0, 180.0, low_open=True, high_open=True, unit="deg")
+        checks.integer("width", width, 8, 16384)
+        checks.positive("pixel_pitch_m", pixel_pitch_m, "m")
+        fpx = (width / 2.0) / math.tan(math.radians(fov) / 2.0)
+        return cls.from_focal_length(fpx * pixel_pitch_m, pixel_pitch_m, width, height, f_number, **kwargs)
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+    @property
+    def focal_length_m(self) -> float:
+        return self.fx * self.pixel_pitch_m
+
+    @property
+    def fov(self) -> tuple[float, float]:
+        """Full field of view (rad) across columns and rows, edge to edge of the sensor, ideal pinhole."""
+        fx = math.atan((self.cx + 0.5) / self.fx) + math.atan((self.width - 0.5 - self.cx) / self.fx)
+        fy = math.atan((self.cy + 0.5) / self.fy) + math.atan((self.height - 0.5 - self.cy) / self.fy)
+        return fx, fy
+
+    @property
+    def half_diagonal(self) -> float:
+        """Largest angle (rad) between the boresight and any sensor corner, ideal pinhole."""
+        dx = max(self.cx + 0.5, self.width - 0.5 - self.cx) / self.fx
+        dy = max(self.cy + 0.5, self.height - 0.5 - self.cy) / self.fy
+        return math.atan(math.hypot(dx, dy))
+
+    def project(self, v_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distorted pixel positions (n, 2) of camera-frame directions (n, 3), and a mask of those in front (Z > 0).
+
+        Directions behind the camera get NaN positions.
+        """
+        v = np.asarray(v_cam, dtype=np.float64).reshape(-1, 3)
+        front = v[:, 2] > 1e-12
+        z = np.where(front, v[:, 2], np.nan)
+        ideal = np.stack([self.fx * v[:, 0] / z + self.cx, self.fy * v[:, 1] / z + self.cy], axis=1)
+        out = np.full_like(ideal, np.nan)
+        if np.any(front):
+            out[front] = self.distortion.distort(ideal[front], self.intrinsics)
+        return out, front
+
+    def unproject(self, xy: np.ndarray) -> np.ndarray:
+        """Camera-frame unit directions (n, 3) of distorted pixel positions (n, 2)."""
+        ideal = self.distortion.undistort(np.asarray(xy, dtype=np.float64).reshape(-1, 2), self.intrinsics)
+        v = np.stack([(ideal[:, 0] - self.cx) / self.fx, (ideal[:, 1] - self.cy) / self.fy, np.ones(len(ideal))], 1)
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def inertial_to_camera(self, attitude: Rotation) -> Rotation:
+        """Inertial -> camera rotation(s) of this head for body attitude(s) ``attitude`` (inertial -> body)."""
+        return self.mounting * attitude
+
+    def in_frame(self, xy: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
+        """Mask of pixel positions that fall on the sensor (pixel edges at -0.5 and size - 0.5), grown by a margin."""
+        xy = np.asarray(xy, dtype=np.float64)
+        lo = -0.5 - margin_px
+        return (
+            (xy[..., 0] >= lo)
+            & (xy[..., 0] <= self.width - 0.5 + margin_px)
+            & (xy[..., 1] >= lo)
+            & (xy[..., 1] <= self.height - 0.5 + margin_px)
+        )

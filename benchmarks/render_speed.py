@@ -39,7 +39,7 @@ def main() -> None:
 
     # Seed 002's optics: 1024^2, f = 58.5 mm, 12 um (12 deg field); 50 ms exposure at 7 deg/s about X and Y.
     cam = Camera.from_focal_length(58.5e-3, 12e-6, 1024, 1024, f_number=1.4)
-    catalog = load_catalog(mag_limit=6.3)
+    catalog = load_catalog(mag_limit=6.0)
     exposure = 0.05
     rate = 30.0 / (cam.fx * exposure) / math.sqrt(2)  # rad/s per axis: 30 px trails on the boresight
     traj = Trajectory(ConstantRate([rate, rate, 0.0]), pointing(83.8 * DEG, -5.4 * DEG, 0.0))

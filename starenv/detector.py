@@ -96,8 +96,9 @@ class Detector:
         self._background_cache: tuple[float, np.ndarray, np.ndarray | None] | None = None
         self._work = np.empty(self.shape, dtype=np.float32)  # read-out scratch, reused so its pages stay mapped
 
-    def _background(self, exposure_s: float) -> tuple[np.ndarray, np.ndarray | None]:
-        """Mean background + dark electrons per pixel, and the per-pixel std of the Gaussian path (None: exact)."""
+    def background(self, exposure_s: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """Mean background + dark electrons per pixel over an exposure (scalar or map), and the per-pixel std of the
+        Gaussian fast path (None when the exact Poisson path is used)."""
         if self._background_cache is None or self._background_cache[0] != exposure_s:
             lam = (self.background_e_per_px_s + np.float32(self.spec.dark_current_e_per_s)) * np.float32(exposure_s)
             read2 = self.spec.read_noise_e**2
@@ -108,6 +109,15 @@ class Detector:
             self._background_cache = (exposure_s, lam, std)
         return self._background_cache[1], self._background_cache[2]
 
+    def peak_snr(self, peak_e: np.ndarray, xy: np.ndarray, exposure_s: float) -> np.ndarray:
+        """Signal-to-noise of a star whose brightest pixel (at ``xy``, px) expects ``peak_e`` electrons."""
+        lam, _ = self.background(exposure_s)
+        if lam.ndim:
+            col = np.clip(np.rint(xy[:, 0]), 0, self.shape[1] - 1).astype(np.intp)
+            row = np.clip(np.rint(xy[:, 1]), 0, self.shape[0] - 1).astype(np.intp)
+            lam = lam[row, col]
+        return peak_e / np.sqrt(peak_e + lam + self.spec.read_noise_e**2)
+
     def read_out(self, signal: StarSignal, exposure_s: float, rng: np.random.Generator) -> np.ndarray:
         """A uint16 frame (height, width) in DN for the given star signal (expected e-) and exposure (s).
 
@@ -116,7 +126,7 @@ class Detector:
         """
         spec = self.spec
         inv_gain = np.float32(1.0 / spec.gain_e_per_dn)
-        lam, std = self._background(exposure_s)
+        lam, std = self.background(exposure_s)
         dn = self._work
         if std is not None:
             rng.standard_normal(dtype=np.float32, out=dn)

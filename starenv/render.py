@@ -31,6 +31,7 @@ from starenv.sky import StarCatalog
 
 PSF_RADIUS_SIGMA = 4.5  # half-width of the PSF footprint, in sigma
 MIN_ELECTRONS = 1e-9  # expected e- below which a pixel's signal is left out
+DETECTABLE_SNR = 5.0  # peak-pixel signal-to-noise at which a star counts as detectable in the scores
 BAND_TABLE_STEPS = 4096  # sub-pixel phases at which the PSF's pixel fractions are tabulated
 
 
@@ -57,7 +58,9 @@ class StarTruth:
 
     ``xy_mid``: position at the middle of the star's exposure window; ``xy_centroid``: intensity-weighted centroid of
     the whole trail (mean over the exposure of the position, the quantity a centroider of the smeared spot should
-    find); ``xy_start``/``xy_end``: trail end points; ``electrons``: expected signal landing on the sensor.
+    find); ``xy_start``/``xy_end``: trail end points; ``electrons``: expected signal landing on the sensor;
+    ``peak_electrons``: expected signal in the star's brightest pixel; ``detectable``: whether that peak reaches
+    ``DETECTABLE_SNR`` against the pixel's noise (set by the sensor, which knows the noise; all True until then).
     """
 
     catalog_id: np.ndarray
@@ -67,6 +70,8 @@ class StarTruth:
     xy_start: np.ndarray
     xy_end: np.ndarray
     electrons: np.ndarray
+    peak_electrons: np.ndarray
+    detectable: np.ndarray
 
     def __len__(self) -> int:
         return len(self.catalog_id)
@@ -149,7 +154,7 @@ class StarRenderer:
 
         visible = np.flatnonzero(np.all(np.isfinite(path), axis=(1, 2)) & np.any(cam.in_frame(path, margin_px), 1))
         weight = self.electrons_per_s[idx[visible]] * exposure / n_inst  # electrons per instant
-        signal, electrons = self._signal(path[visible], weight)
+        signal, electrons, peak = self._signal(path[visible], weight)
         sel = idx[visible]
         truth = StarTruth(
             catalog_id=self.catalog.hip[sel],
@@ -159,6 +164,8 @@ class StarRenderer:
             xy_start=xy_start[visible],
             xy_end=xy_end[visible],
             electrons=electrons,
+            peak_electrons=peak,
+            detectable=np.ones(len(sel), dtype=bool),
         )
         return RenderedFrame(signal=signal, truth=truth, t_mid=t_mid, n_instants=n_inst)
 
@@ -177,19 +184,20 @@ class StarRenderer:
         xy, _ = self.camera.project(v.reshape(-1, 3))
         return xy.reshape(n_star, times.shape[1], 2)
 
-    def _signal(self, paths: np.ndarray, weight: np.ndarray) -> tuple[StarSignal, np.ndarray]:
+    def _signal(self, paths: np.ndarray, weight: np.ndarray) -> tuple[StarSignal, np.ndarray, np.ndarray]:
         """Pixel-integrated Gaussian PSF summed over each star's instants; ``paths`` is (stars, instants, 2) px.
 
         At instant k the PSF covers a band of ``n_band`` columns and rows around the star; the fraction of light in
         each (a difference of ``erf`` at the pixel edges) comes from :attr:`_band_table`.  Scattered into
         (instants, width) matrices Wx and Wy over the star's window, the patch is one matrix product
         ``Wy^T diag(w) Wx``.  Stars are batched by window size (rounded up to 8 px).  Returns the merged sparse
-        signal and each star's on-sensor electrons.
+        signal, each star's on-sensor electrons and its peak pixel's electrons.
         """
         cam = self.camera
         n, k = paths.shape[:2]
         if n == 0:
-            return StarSignal(np.zeros(0, np.int64), np.zeros(0, np.float32), (cam.height, cam.width)), np.zeros(0)
+            empty = StarSignal(np.zeros(0, np.int64), np.zeros(0, np.float32), (cam.height, cam.width))
+            return empty, np.zeros(0), np.zeros(0)
         table = self._band_table
         n_band = table.shape[1]
         start = np.floor(paths - self._band_radius)
@@ -204,6 +212,7 @@ class StarRenderer:
         offset = band - lo[:, None, :]  # band start inside the window
         indices, values = [], []
         electrons = np.zeros(n)
+        peak = np.zeros(n)
         keys = size[:, 0] * 65536 + size[:, 1]
         cols_band = np.arange(n_band)
         for key in np.unique(keys):
@@ -220,11 +229,13 @@ class StarRenderer:
             rows = lo[group, 1, None, None] + np.arange(h)[None, :, None]  # (m, h, 1)
             cols = lo[group, 0, None, None] + np.arange(w)[None, None, :]  # (m, 1, w)
             on = (rows >= 0) & (rows < cam.height) & (cols >= 0) & (cols < cam.width)
-            electrons[group] = np.where(on, patches, 0.0).sum(axis=(1, 2))
+            on_sensor = np.where(on, patches, 0.0)
+            electrons[group] = on_sensor.sum(axis=(1, 2))
+            peak[group] = on_sensor.max(axis=(1, 2))
             keep = on & (patches > MIN_ELECTRONS)
             indices.append(np.broadcast_to(rows * cam.width + cols, keep.shape)[keep])
             values.append(patches[keep])
-        return self._merge(np.concatenate(indices), np.concatenate(values)), electrons
+        return self._merge(np.concatenate(indices), np.concatenate(values)), electrons, peak
 
     def _merge(self, index: np.ndarray, electrons: np.ndarray) -> StarSignal:
         """Sum the electrons of repeated pixel indices (where star windows overlap) without sorting."""

@@ -56,6 +56,18 @@ class ScenarioError(ValueError):
     """A scenario file (or override) that does not describe a valid mission."""
 
 
+def _finite(x: float) -> bool:
+    """``math.isfinite`` that calls an int too large for a float non-finite instead of raising OverflowError."""
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and _finite(x)
+
+
 class _Table:
     """Typed access to one TOML table that remembers which keys were read, to refuse the rest."""
 
@@ -88,7 +100,7 @@ class _Table:
         if v is None:
             return None
         ok_type = isinstance(v, int) if integer else isinstance(v, int | float)
-        if isinstance(v, bool) or not ok_type or not math.isfinite(v):
+        if isinstance(v, bool) or not ok_type or not _finite(v):
             self.fail(key, expected, v)
         if (v <= low if low_open else v < low) or v > high:
             self.fail(key, expected, v)
@@ -110,7 +122,7 @@ class _Table:
         if (
             not isinstance(v, list | tuple)
             or (len(v) != n if n else not v)
-            or not all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+            or not all(_is_number(x) for x in v)
         ):
             self.fail(key, expected, v)
         return tuple(float(x) for x in v)
@@ -122,7 +134,7 @@ class _Table:
             return None
         try:
             m = np.array(v, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             m = None
         if m is None or m.shape != (3, 3) or not np.all(np.isfinite(m)):
             self.fail(key, expected, v)
@@ -173,7 +185,12 @@ def _dataclass_from_table(tbl: _Table | None, cls):
         if value is not None:
             kwargs[f.name] = value
     tbl.finish()
-    return tbl.build(cls.__name__, cls, **kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:  # the model's checks name the field first: "adc_bits must be ..."
+        word = str(exc).split(" ", 1)[0].rsplit(".", 1)[-1]
+        key = word if word in {f.name for f in dataclasses.fields(cls)} else ""
+        raise ScenarioError(f"{tbl.source}: {tbl.where(key)}: {exc}") from exc
 
 
 DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre")
@@ -302,7 +319,9 @@ def _motion_kind(tbl: _Table, kind: str, head0: Camera, initial: Rotation | None
         return tbl.build("motion", Slew.between, initial, target_body, max_rate, max_accel, start)
     if kind == "tumble":
         inertia = tbl.raw("inertia_kgm2", _REQUIRED, "3 principal moments or a 3x3 tensor, kg m^2")
-        arr = np.array(inertia, dtype=np.float64) if isinstance(inertia, list) else None
+        rows = inertia if isinstance(inertia, list) and all(isinstance(r, list) for r in inertia) else [inertia]
+        ok = all(isinstance(r, list) and r and all(_is_number(x) for x in r) for r in rows)
+        arr = np.array(inertia, dtype=np.float64) if ok and len({len(r) for r in rows}) == 1 else None
         if arr is None or arr.shape not in ((3,), (3, 3)):
             tbl.fail("inertia_kgm2", "3 principal moments or a 3x3 tensor, kg m^2", inertia)
         tensor = np.diag(arr) if arr.shape == (3,) else arr
@@ -322,13 +341,13 @@ def _motion_kind(tbl: _Table, kind: str, head0: Camera, initial: Rotation | None
             tbl.number("arg_latitude_deg", 0.0, low=-360.0, high=360.0) * DEG,
         )
     segments, att = [], initial
-    for seg in tbl.tables("segments"):
+    for k, seg in enumerate(tbl.tables("segments")):
         seg_kind = seg.string("kind", choices=tuple(k for k in MOTION_KINDS if k not in ("sequence", "leo_nadir")))
         duration = seg.number("duration_s", low=0.0, high=1e7)
         motion = _motion_kind(seg, seg_kind, head0, att)
         seg.finish()
         segments.append((motion, duration))
-        att = motion.delta(duration) * att
+        att = motion.delta(duration) * (motion.delta(0.0).inv() if k else Rotation.identity()) * att
     return tbl.build("motion", Sequence, segments)
 
 
@@ -396,7 +415,7 @@ def _apply_override(data: dict, dotted: str, value: Any, source: str) -> None:
     for i, part in enumerate(parts):
         last = i == len(parts) - 1
         if isinstance(node, list):
-            if not part.isdigit() or int(part) >= len(node):
+            if not (part.isascii() and part.isdigit()) or int(part) >= len(node):
                 where = ".".join(parts[:i])
                 raise ScenarioError(f"{source}: override {dotted!r}: {where} has {len(node)} items, no item {part!r}")
             if last:
@@ -439,7 +458,7 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
         source = str(path)
         try:
             data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except tomllib.TOMLDecodeError as exc:
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise ScenarioError(f"{source}: not valid TOML: {exc}") from exc
         data.setdefault("name", path.stem)
     if overrides:
@@ -481,9 +500,11 @@ def _toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int | float):
-        return repr(v)
+        return repr(float(v) if isinstance(v, float) else int(v))
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return '"' + "".join(
+            "\\" + c if c in '"\\' else f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F else c for c in v
+        ) + '"'
     if isinstance(v, list | tuple):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")

@@ -20,7 +20,7 @@ from starenv.detector import Detector
 from starenv.drops import DropChannel
 from starenv.frames import ARCSEC
 from starenv.gyro import Gyro, GyroSamples
-from starenv.render import StarRenderer, StarTruth
+from starenv.render import DETECTABLE_SNR, StarRenderer, StarTruth
 from starenv.scenario import Scenario
 from starenv.sky import load_catalog
 
@@ -73,16 +73,16 @@ class StarSensor:
         """Start an episode: new noise streams, hot-pixel patterns, drop channels and gyro state from ``seed``."""
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
         n = len(self.scenario.heads)
-        streams = ss.spawn(3 * n + 1)
+        streams = ss.spawn(3 * n + 1)  # gyro first, then three per head, so appending a head changes no stream
         self.detectors = [
             Detector(h.detector, h.camera.width, h.camera.height, h.camera.pixel_pitch_m, bg,
-                     np.random.default_rng(streams[i]))
+                     np.random.default_rng(streams[1 + 3 * i]))
             for i, (h, bg) in enumerate(zip(self.scenario.heads, self.backgrounds, strict=True))
         ]
-        self.noise_rngs = [np.random.default_rng(s) for s in streams[n : 2 * n]]
-        self.drop_rngs = [np.random.default_rng(s) for s in streams[2 * n : 3 * n]]
+        self.noise_rngs = [np.random.default_rng(streams[2 + 3 * i]) for i in range(n)]
+        self.drop_rngs = [np.random.default_rng(streams[3 + 3 * i]) for i in range(n)]
         self.drop_channels = [DropChannel(self.scenario.drops) for _ in range(n)]
-        self.gyro = Gyro(self.scenario.gyro, np.random.default_rng(streams[-1]))
+        self.gyro = Gyro(self.scenario.gyro, np.random.default_rng(streams[0]))
         self.index = 0
 
     def next_frame(self) -> Frame:
@@ -95,11 +95,13 @@ class StarSensor:
             self.renderers, self.detectors, self.noise_rngs, self.drop_channels, self.drop_rngs, strict=True
         ):
             rendered = renderer.render(sc.trajectory, t_start, sc.exposure_s)
+            truth = rendered.truth
+            truth.detectable = detector.peak_snr(truth.peak_electrons, truth.xy_mid, sc.exposure_s) >= DETECTABLE_SNR
             image = detector.read_out(rendered.signal, sc.exposure_s, noise)
             dropped = drops.dropped(drop_rng)
             if dropped:
                 image = np.zeros_like(image)
-            heads.append(HeadFrame(image, dropped, rendered.truth, rendered.t_mid, rendered.n_instants))
+            heads.append(HeadFrame(image, dropped, truth, rendered.t_mid, rendered.n_instants))
         t_mid = heads[0].t_mid
         window_end = t_start + sc.exposure_s + sc.heads[0].detector.line_time_s * (sc.heads[0].camera.height - 1)
         gyro = self.gyro.sample_until(sc.trajectory.body_rate, window_end)

@@ -44,8 +44,8 @@ def test_dark_frame_mean_and_variance_match_the_noise_model(bg, dark, read, gain
 
 
 def test_fast_path_is_taken_only_when_the_sum_is_nearly_gaussian():
-    assert make(DetectorSpec(read_noise_e=8.0, **QUIET), 500.0)._background(0.1)[1] is not None
-    assert make(DetectorSpec(read_noise_e=0.0, dark_current_e_per_s=300.0, **QUIET))._background(0.1)[1] is None
+    assert make(DetectorSpec(read_noise_e=8.0, **QUIET), 500.0).background(0.1)[1] is not None
+    assert make(DetectorSpec(read_noise_e=0.0, dark_current_e_per_s=300.0, **QUIET)).background(0.1)[1] is None
 
 
 def test_star_signal_is_poisson_and_saturates_at_full_well_and_adc():

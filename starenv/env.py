@@ -1,0 +1,258 @@
+"""``StarSensorEnv``: the Gymnasium environment around the star-sensor simulator.
+
+Timeline.  ``reset`` returns the observation of frame 0; each ``step(action)`` takes the pipeline's estimate *for the
+frame it last observed*, scores it against that frame's truth, simulates the next frame and returns it.  So
+``info["scores"]`` of a step scores the action against frame ``info["scores"]["frame"]`` (the previous observation)
+while ``info["truth"]`` is the truth of the observation returned with it.
+
+Observation (``Dict``), as the sensor delivers it -- never truth:
+
+* ``frames``: uint16 (heads, H, W) raw images (heads smaller than the largest are zero-padded at the bottom/right);
+  a dropped frame is all zeros with ``frame_valid = 0``, never a stale image.
+* ``frame_valid``: int8 (heads,).
+* ``gyro``: ``{"t": float64 (N,), "rate": float64 (N, 3), "count": int64 ()}``: the ``count`` samples stamped since
+  the previous observation (s; rad/s, body frame, average rate over each sample interval), padded with zeros up to
+  ``N = ceil(rate_hz / frame_rate_hz) + 1``.
+* ``time_s``: float64 (), mid-exposure time of the frame; ``exposure_s``: float64 ().
+
+Action (``Dict``): ``attitude`` float64 (4,) quaternion ``[x, y, z, w]`` (inertial -> body, at mid-exposure of the
+observed frame; normalised on receipt) and ``attitude_valid`` int8 (); optionally per-head star lists padded to
+``MAX_STARS`` rows, the rows in use flagged by a 0/1 mask: ``detections_xy`` (heads, MAX_STARS, 2) px with
+``detection_mask`` (heads, MAX_STARS) and ``catalog_ids`` (heads, MAX_STARS) (-1: not identified); ``predicted_xy``
+(heads, MAX_STARS, 2) px with ``predicted_ids`` and ``prediction_mask`` (heads, MAX_STARS).  ``None``, a missing
+``attitude`` or ``attitude_valid = 0`` makes the step *unavailable*; NaN/inf, a wrong shape or dtype raises
+``ValueError`` naming the key.  Vector environments batch every key: start from :meth:`StarSensorEnv.null_action`.
+
+Reward: ``max(0, 1 - error / threshold)`` for an available estimate (1 when exact, 0 at or beyond the scenario's
+``availability_threshold_arcsec``), 0 when unavailable.  ``terminated`` once ``lost_after_steps`` consecutive steps
+had no available estimate within the threshold ("lost"); ``truncated`` after the scenario's last frame.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from scipy.spatial.transform import Rotation
+
+from starenv import scenario as scenario_mod
+from starenv.scoring import attitude_error, score_stars
+from starenv.sensor import Frame, StarSensor
+
+MAX_STARS = 256
+
+
+class StarSensorEnv(gym.Env):
+    """A scenario's star sensor heads and gyro stepped frame by frame; see the module docstring for the contract."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        scenario: str | dict = "paper_000",
+        overrides: dict[str, Any] | None = None,
+        render_mode: str | None = None,
+    ):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.scenario = scenario_mod.load(scenario, overrides)
+        self.render_mode = render_mode
+        self.sensor = StarSensor(self.scenario)
+        sc = self.scenario
+        self.metadata = {**self.metadata, "render_fps": max(1, int(round(sc.frame_rate_hz)))}
+        n_heads = len(sc.heads)
+        height = max(h.camera.height for h in sc.heads)
+        width = max(h.camera.width for h in sc.heads)
+        self.max_gyro = int(math.ceil(sc.gyro.rate_hz / sc.frame_rate_hz)) + 1
+        big = np.finfo(np.float64).max
+        self.observation_space = spaces.Dict(
+            {
+                "frames": spaces.Box(0, 65535, (n_heads, height, width), np.uint16),
+                "frame_valid": spaces.Box(0, 1, (n_heads,), np.int8),
+                "gyro": spaces.Dict(
+                    {
+                        "t": spaces.Box(0.0, big, (self.max_gyro,), np.float64),
+                        "rate": spaces.Box(-big, big, (self.max_gyro, 3), np.float64),
+                        "count": spaces.Box(0, self.max_gyro, (), np.int64),
+                    }
+                ),
+                "time_s": spaces.Box(0.0, big, (), np.float64),
+                "exposure_s": spaces.Box(0.0, big, (), np.float64),
+            }
+        )
+        self.action_space = spaces.Dict(
+            {
+                "attitude": spaces.Box(-1.0, 1.0, (4,), np.float64),
+                "attitude_valid": spaces.Box(0, 1, (), np.int8),
+                "detections_xy": spaces.Box(-1e4, 1e5, (n_heads, MAX_STARS, 2), np.float64),
+                "detection_mask": spaces.Box(0, 1, (n_heads, MAX_STARS), np.int8),
+                "catalog_ids": spaces.Box(-1, 2**31 - 1, (n_heads, MAX_STARS), np.int64),
+                "predicted_xy": spaces.Box(-1e4, 1e5, (n_heads, MAX_STARS, 2), np.float64),
+                "predicted_ids": spaces.Box(-1, 2**31 - 1, (n_heads, MAX_STARS), np.int64),
+                "prediction_mask": spaces.Box(0, 1, (n_heads, MAX_STARS), np.int8),
+            }
+        )
+        self._frame: Frame | None = None
+        self._steps = 0
+        self._lost_steps = 0
+
+    def null_action(self) -> dict:
+        """A complete action that claims nothing (unavailable, empty star lists): a template to fill in, and what
+        vector environments need since they batch every key of the action space."""
+        return {k: np.zeros(space.shape, dtype=space.dtype) for k, space in self.action_space.spaces.items()}
+
+    @property
+    def cameras(self):
+        """The calibrated camera model of each head, as the sensor knows it (may differ from the true optics)."""
+        return [h.calibrated for h in self.scenario.heads]
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is None and self._np_random is None:
+            seed = self.scenario.seed
+        super().reset(seed=seed)
+        self.sensor.reset(np.random.SeedSequence(int(self.np_random.integers(0, 2**63 - 1))))
+        self._frame = self.sensor.next_frame()
+        self._steps = 0
+        self._lost_steps = 0
+        return self._observation(self._frame), {"truth": self._truth(self._frame)}
+
+    def step(self, action):
+        if self._frame is None:
+            raise RuntimeError("call reset() before step()")
+        parsed = parse_action(action, len(self.scenario.heads))
+        scores = self._score(parsed, self._frame)
+        threshold = self.scenario.availability_threshold_arcsec
+        error = scores["attitude"]["total_arcsec"] if scores["available"] else math.inf
+        reward = max(0.0, 1.0 - error / threshold) if scores["available"] else 0.0
+        self._lost_steps = 0 if error < threshold else self._lost_steps + 1
+        self._steps += 1
+        terminated = self._lost_steps >= self.scenario.lost_after_steps
+        truncated = self._steps >= self.scenario.n_steps - 1
+        self._frame = self.sensor.next_frame()
+        info = {"truth": self._truth(self._frame), "scores": scores}
+        return self._observation(self._frame), float(reward), terminated, truncated, info
+
+    def render(self):
+        if self.render_mode != "rgb_array" or self._frame is None:
+            return None
+        from starenv.view import mosaic, overlay
+
+        return mosaic([overlay(h.image, h.truth, h.dropped) for h in self._frame.heads])
+
+    def _observation(self, frame: Frame) -> dict:
+        space = self.observation_space
+        frames = np.zeros(space["frames"].shape, dtype=np.uint16)
+        for i, h in enumerate(frame.heads):
+            frames[i, : h.image.shape[0], : h.image.shape[1]] = h.image
+        n = len(frame.gyro.t)
+        if n > self.max_gyro:
+            raise RuntimeError(f"{n} gyro samples in one step exceed the layout's {self.max_gyro}")
+        t = np.zeros(self.max_gyro)
+        rate = np.zeros((self.max_gyro, 3))
+        t[:n], rate[:n] = frame.gyro.t, frame.gyro.rate
+        return {
+            "frames": frames,
+            "frame_valid": np.array([not h.dropped for h in frame.heads], dtype=np.int8),
+            "gyro": {"t": t, "rate": rate, "count": np.array(n, dtype=np.int64)},
+            "time_s": np.array(frame.t_mid, dtype=np.float64),
+            "exposure_s": np.array(self.scenario.exposure_s, dtype=np.float64),
+        }
+
+    @staticmethod
+    def _truth(frame: Frame) -> dict:
+        return {
+            "frame": frame.index,
+            "time_s": frame.t_mid,
+            "attitude": frame.attitude.as_quat(),
+            "body_rate": frame.body_rate,
+            "dropped": [h.dropped for h in frame.heads],
+            "stars": [h.truth.as_dict() for h in frame.heads],
+        }
+
+    def _score(self, action: dict, frame: Frame) -> dict:
+        mountings = [h.camera.mounting for h in self.scenario.heads]
+        available = action["attitude"] is not None
+        att = attitude_error(Rotation.from_quat(action["attitude"]), frame.attitude, mountings) if available else None
+        heads = []
+        for i, h in enumerate(frame.heads):
+            heads.append(
+                vars(
+                    score_stars(
+                        h.truth,
+                        detected_xy=action["detections_xy"][i],
+                        claimed_ids=action["catalog_ids"][i],
+                        predicted_ids=action["predicted_ids"][i],
+                        predicted_xy=action["predicted_xy"][i],
+                    )
+                )
+            )
+        threshold = self.scenario.availability_threshold_arcsec
+        return {
+            "frame": frame.index,
+            "available": available,
+            "within_threshold": bool(available and att["total_arcsec"] < threshold),
+            "attitude": att,
+            "heads": heads,
+        }
+
+
+def _array(action: dict, key: str, shape: tuple, kind: str) -> np.ndarray:
+    value = action[key]
+    arr = np.asarray(value)
+    if kind == "f" and arr.dtype.kind not in "fiu" or kind == "i" and arr.dtype.kind not in "iu":
+        expected = "real numbers" if kind == "f" else "integers"
+        raise ValueError(f"action[{key!r}] must hold {expected}, got dtype {arr.dtype}")
+    if arr.shape != shape:
+        raise ValueError(f"action[{key!r}] must have shape {shape}, got {arr.shape}")
+    if kind == "f" and not np.all(np.isfinite(arr)):
+        raise ValueError(f"action[{key!r}] must be finite (no NaN or inf)")
+    return arr.astype(np.float64 if kind == "f" else np.int64)
+
+
+def parse_action(action, n_heads: int) -> dict:
+    """Validate an action; returns per-head lists (None where absent) and the attitude quaternion or None."""
+    out: dict[str, Any] = {"attitude": None}
+    keys = ("detections_xy", "catalog_ids", "predicted_xy", "predicted_ids")
+    out.update({k: [None] * n_heads for k in keys})
+    if action is None:
+        return out
+    if not isinstance(action, dict):
+        raise ValueError(f"action must be a dict (see StarSensorEnv.action_space) or None, got {type(action).__name__}")
+    unknown = set(action) - {"attitude", "attitude_valid", "detection_mask", "prediction_mask", *keys}
+    if unknown:
+        raise ValueError(f"action has unknown keys {sorted(unknown)}")
+    valid = True
+    if "attitude_valid" in action:
+        flag = _array(action, "attitude_valid", (), "i")
+        if flag not in (0, 1):
+            raise ValueError(f"action['attitude_valid'] must be 0 or 1, got {int(flag)}")
+        valid = bool(flag)
+    if "attitude" in action:
+        q = _array(action, "attitude", (4,), "f")
+        norm = float(np.linalg.norm(q))
+        if valid and norm < 1e-6:
+            raise ValueError("action['attitude'] must be a quaternion [x, y, z, w] of non-zero norm (it is normalised)")
+        out["attitude"] = q / norm if valid else None
+    for list_key, mask_key, xy_key, id_key in (
+        ("detections", "detection_mask", "detections_xy", "catalog_ids"),
+        ("predictions", "prediction_mask", "predicted_xy", "predicted_ids"),
+    ):
+        if xy_key not in action and id_key not in action:
+            continue
+        if mask_key not in action:
+            raise ValueError(f"action has {list_key} but no {mask_key!r} saying which rows are in use")
+        mask = _array(action, mask_key, (n_heads, MAX_STARS), "i")
+        if np.any((mask != 0) & (mask != 1)):
+            raise ValueError(f"action[{mask_key!r}] must hold 0 or 1")
+        xy = _array(action, xy_key, (n_heads, MAX_STARS, 2), "f") if xy_key in action else None
+        ids = _array(action, id_key, (n_heads, MAX_STARS), "i") if id_key in action else None
+        for h in range(n_heads):
+            rows = mask[h].astype(bool)
+            out[xy_key][h] = None if xy is None else xy[h, rows]
+            out[id_key][h] = None if ids is None else ids[h, rows]
+    if out["detections_xy"][0] is None:
+        out["catalog_ids"] = [None] * n_heads  # ids are scored through their detections
+    return out

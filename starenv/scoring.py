@@ -1,0 +1,123 @@
+"""Per-step scores of a pipeline's estimate against truth: the one place every metric is computed.
+
+Attitude error is the angle of ``R_est R_true^T`` (arcsec).  Its split per head is taken in that head's camera
+frame: with the error rotation vector ``e`` (body frame) mapped to the camera, ``cross_boresight`` is
+``hypot(e_x, e_y)`` (pitch about camera X, yaw about camera Y) and ``roll`` is ``|e_z|`` about the boresight.
+
+Star-level metrics use the truth of one head's frame:
+
+* centroid: each detection is matched one-to-one (Hungarian assignment) to a true star's intensity-weighted trail
+  centroid (``xy_centroid``) within ``gate_px``; error = Euclidean distance (px).  Recall = matched detectable stars /
+  detectable stars; precision = matched detections / detections.
+* identification: a claimed catalog id is correct when its detection is matched to the star with that id.  ID rate =
+  correct / detectable stars; false-ID rate = wrong ids / claimed ids; the frame is solved when >= 3 ids are correct
+  and none is wrong.
+* prediction: predicted positions (catalog id, x, y) against the true mid-exposure position ``xy_mid`` of the same
+  star; counted on dropped frames too (truth exists for every frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
+
+from starenv.frames import ARCSEC_PER_RAD
+from starenv.render import StarTruth
+
+CENTROID_GATE_PX = 3.0
+SOLVED_MIN_CORRECT = 3
+
+
+def attitude_error(estimate: Rotation, truth: Rotation, mountings: list[Rotation]) -> dict:
+    """Total error (arcsec) and, per head, cross-boresight / pitch / yaw / roll errors (arcsec)."""
+    error = (estimate * truth.inv()).as_rotvec()  # body frame, rad
+    per_head = []
+    for m in mountings:
+        e = m.apply(error) * ARCSEC_PER_RAD
+        per_head.append(
+            {
+                "pitch_arcsec": float(abs(e[0])),
+                "yaw_arcsec": float(abs(e[1])),
+                "roll_arcsec": float(abs(e[2])),
+                "cross_boresight_arcsec": float(np.hypot(e[0], e[1])),
+            }
+        )
+    return {"total_arcsec": float(np.linalg.norm(error) * ARCSEC_PER_RAD), "heads": per_head}
+
+
+def match(detected_xy: np.ndarray, true_xy: np.ndarray, gate_px: float = CENTROID_GATE_PX):
+    """One-to-one matching of detections to true positions within ``gate_px``: (detection idx, truth idx, distance)."""
+    if len(detected_xy) == 0 or len(true_xy) == 0:
+        empty = np.zeros(0, dtype=np.intp)
+        return empty, empty, np.zeros(0)
+    d = np.linalg.norm(detected_xy[:, None, :] - true_xy[None, :, :], axis=2)
+    cost = np.where(d <= gate_px, d, 1e9)
+    rows, cols = linear_sum_assignment(cost)
+    ok = d[rows, cols] <= gate_px
+    return rows[ok], cols[ok], d[rows[ok], cols[ok]]
+
+
+@dataclass
+class StarScores:
+    """Star-level scores of one head's frame (None where the stage produced nothing to score)."""
+
+    centroid_error_px_mean: float | None = None
+    centroid_error_px_max: float | None = None
+    detection_recall: float | None = None
+    detection_precision: float | None = None
+    id_rate: float | None = None
+    false_id_rate: float | None = None
+    ids_correct: int = 0
+    ids_wrong: int = 0
+    solved: bool = False
+    prediction_error_px_mean: float | None = None
+    prediction_error_px_max: float | None = None
+    predictions_scored: int = 0
+
+
+def score_stars(
+    truth: StarTruth,
+    detected_xy: np.ndarray | None = None,
+    claimed_ids: np.ndarray | None = None,
+    predicted_ids: np.ndarray | None = None,
+    predicted_xy: np.ndarray | None = None,
+    gate_px: float = CENTROID_GATE_PX,
+) -> StarScores:
+    """Score one head's detections (n, 2) px, their claimed catalog ids (n,; -1 = none) and predictions."""
+    s = StarScores()
+    detectable = truth.detectable
+    n_detectable = int(detectable.sum())
+    if detected_xy is not None:
+        det, tru, dist = match(detected_xy, truth.xy_centroid, gate_px)
+        if len(dist):
+            s.centroid_error_px_mean = float(dist.mean())
+            s.centroid_error_px_max = float(dist.max())
+        if n_detectable:
+            s.detection_recall = float(detectable[tru].sum() / n_detectable)
+        if len(detected_xy):
+            s.detection_precision = float(len(det) / len(detected_xy))
+        if claimed_ids is not None:
+            claimed = claimed_ids >= 0
+            true_id = np.full(len(detected_xy), -1, dtype=np.int64)
+            true_id[det] = truth.catalog_id[tru]
+            correct = claimed & (claimed_ids == true_id)
+            s.ids_correct = int(correct.sum())
+            s.ids_wrong = int((claimed & ~correct).sum())
+            if n_detectable:
+                s.id_rate = min(1.0, s.ids_correct / n_detectable)
+            if claimed.any():
+                s.false_id_rate = s.ids_wrong / int(claimed.sum())
+            s.solved = s.ids_correct >= SOLVED_MIN_CORRECT and s.ids_wrong == 0
+    if predicted_ids is not None and predicted_xy is not None and len(predicted_ids):
+        lookup = {int(h): i for i, h in enumerate(truth.catalog_id)}
+        pairs = [(j, lookup[int(h)]) for j, h in enumerate(predicted_ids) if int(h) in lookup]
+        if pairs:
+            pj, ti = np.array(pairs).T
+            err = np.linalg.norm(predicted_xy[pj] - truth.xy_mid[ti], axis=1)
+            s.prediction_error_px_mean = float(err.mean())
+            s.prediction_error_px_max = float(err.max())
+            s.predictions_scored = len(pairs)
+    return s

@@ -57,46 +57,64 @@ def cmd_render(args) -> int:
     return 0
 
 
+def _agents(pairs: list[str]) -> dict[str, str]:
+    out = {}
+    for pair in pairs:
+        role, sep, spec = pair.partition("=")
+        if not sep:
+            raise ValueError(f"--agent {pair!r}: expected ROLE=module:Class (or ROLE=none)")
+        out[role] = None if spec.lower() == "none" else spec
+    return out
+
+
 def cmd_run(args) -> int:
     import time
 
     from starenv.env import StarSensorEnv
+    from starenv.scoring import flatten, summarize
 
     env = StarSensorEnv(args.scenario, _overrides(args.set))
+    pipeline = None
+    if args.pipeline != "none":
+        from starenv.agents.pipeline import Pipeline
+
+        pipeline = Pipeline(**_agents(args.agent))
     sc = env.scenario
     steps = sc.n_steps - 1 if args.steps is None else args.steps
     obs, info = env.reset(seed=sc.seed if args.seed is None else args.seed)
-    n_heads = len(sc.heads)
-    dropped = np.zeros(n_heads, dtype=int)
-    stars = np.zeros(n_heads)
-    detectable = np.zeros(n_heads)
-    gyro_samples = int(obs["gyro"]["count"])
-    frames = 1
+    if pipeline is not None:
+        pipeline.reset(env)
+    records, dropped, lost_at = [], np.zeros(len(sc.heads), dtype=int), None
     t0 = time.perf_counter()
-    end = "ran the requested steps"
-    lost_at = None
-    for _ in range(steps):
-        for h, truth in enumerate(info["truth"]["stars"]):
-            stars[h] += len(truth["catalog_id"])
-            detectable[h] += int(truth["detectable"].sum())
+    for k in range(steps):
         dropped += np.array(info["truth"]["dropped"], dtype=int)
-        obs, _, terminated, truncated, info = env.step(None)
-        frames += 1
-        gyro_samples += int(obs["gyro"]["count"])
+        action = pipeline(obs) if pipeline is not None else None
+        obs, _, terminated, truncated, info = env.step(action)
+        records.append(flatten(info["scores"], pipeline.latency_s if pipeline is not None else None))
         if terminated and lost_at is None:
-            lost_at = frames - 1  # with no pipeline every step is unavailable: report it, keep going
+            lost_at = k
         if truncated:
-            end = "reached the end of the scenario"
             break
     wall = time.perf_counter() - t0
+    summary = summarize(records)
     print(f"{sc.name}: {sc.description}")
-    print(f"  {frames} frames ({frames / sc.frame_rate_hz:.2f} s simulated) in {wall:.2f} s wall, "
-          f"{(frames - 1) / max(wall, 1e-9):.1f} steps/s; {gyro_samples} gyro samples; episode {end}")
-    for h, head in enumerate(sc.heads):
-        n = max(frames - 1, 1)
-        print(f"  head {head.name}: {stars[h] / n:.1f} stars/frame rendered, {detectable[h] / n:.1f} detectable, "
-              f"{dropped[h]} frames dropped")
-    print(f"  pipeline: none (every step reported unavailable; the lost rule fired at frame {lost_at})")
+    print(f"  {len(records)} steps ({len(records) / sc.frame_rate_hz:.2f} s simulated) in {wall:.2f} s wall; "
+          f"frames dropped per head: {dropped.tolist()}; lost rule fired at step: {lost_at}")
+    if pipeline is None:
+        print("  pipeline: none (every step unavailable)")
+        return 0
+    print("  pipeline: " + ", ".join(f"{r}={a}" for r, a in pipeline.describe().items() if a))
+    avail = summary.get("within_threshold", {}).get("mean", 0.0)
+    print(f"  availability (error < {sc.availability_threshold_arcsec:g} arcsec): {avail:.3f}")
+    for key, unit in (("attitude_error_arcsec", "arcsec"), ("cross_boresight_error_arcsec", "arcsec"),
+                      ("roll_error_arcsec", "arcsec"), ("centroid_error_px_mean", "px"), ("id_rate", ""),
+                      ("false_id_rate", ""), ("solved", ""), ("prediction_error_px_mean", "px")):
+        if key in summary:
+            v = summary[key]
+            print(f"  {key:30s} median {v['median']:10.4g}  p95 {v['p95']:10.4g}  mean {v['mean']:10.4g} {unit}")
+    for key in sorted(k for k in summary if k.startswith("latency_")):
+        v = summary[key]
+        print(f"  {key:30s} median {v['median']:10.3f}  p95 {v['p95']:10.3f} ms")
     return 0
 
 
@@ -117,6 +135,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=None, help="steps to run (default: the whole scenario)")
     p.add_argument("--seed", type=int, default=None, help="seed (default: the scenario's)")
     p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE", help="override a scenario key")
+    p.add_argument("--pipeline", choices=("default", "none"), default="default",
+                   help="the built-in classical pipeline (default) or none")
+    p.add_argument("--agent", action="append", default=[], metavar="ROLE=module:Class",
+                   help="replace one agent of the pipeline (roles: predictor, deblurrer, detector, corrector, "
+                        "identifier, solver; ROLE=none empties an optional role)")
     p.set_defaults(fn=cmd_run)
     args = parser.parse_args(argv)
     try:

@@ -121,3 +121,41 @@ def score_stars(
             s.prediction_error_px_max = float(err.max())
             s.predictions_scored = len(pairs)
     return s
+
+
+def flatten(scores: dict, latency_s: dict[str, float] | None = None) -> dict[str, float | None]:
+    """One step's scores (``info["scores"]``) and agent latencies as a flat ``metric -> value`` record.
+
+    Star metrics are pooled over heads (mean of the heads that have a value; counts summed; solved if any head is).
+    """
+    att = scores["attitude"]
+    rec: dict[str, float | None] = {
+        "frame": scores["frame"],
+        "available": float(scores["available"]),
+        "within_threshold": float(scores["within_threshold"]),
+        "attitude_error_arcsec": None if att is None else att["total_arcsec"],
+        "cross_boresight_error_arcsec": None if att is None else float(np.mean([h["cross_boresight_arcsec"]
+                                                                              for h in att["heads"]])),
+        "roll_error_arcsec": None if att is None else float(np.mean([h["roll_arcsec"] for h in att["heads"]])),
+    }
+    heads = scores["heads"]
+    for key in ("centroid_error_px_mean", "detection_recall", "detection_precision", "id_rate", "false_id_rate",
+                "prediction_error_px_mean", "prediction_error_px_max"):
+        values = [h[key] for h in heads if h[key] is not None]
+        rec[key] = float(np.mean(values)) if values else None
+    rec["solved"] = float(any(h["solved"] for h in heads))
+    for role, seconds in (latency_s or {}).items():
+        rec[f"latency_{role}_ms"] = seconds * 1e3
+    return rec
+
+
+def summarize(records: list[dict]) -> dict[str, dict[str, float]]:
+    """Median, p95 and mean of every metric over steps (skipping steps where it has no value), and its count."""
+    keys = sorted({k for r in records for k in r if k != "frame"})
+    out = {}
+    for k in keys:
+        values = np.array([r[k] for r in records if r.get(k) is not None], dtype=np.float64)
+        if len(values):
+            out[k] = {"median": float(np.median(values)), "p95": float(np.percentile(values, 95)),
+                      "mean": float(values.mean()), "count": len(values)}
+    return out

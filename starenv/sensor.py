@@ -89,7 +89,7 @@ class StarSensor:
         """Simulate the next frame (the first after :meth:`reset` is frame 0 at t = 0)."""
         sc = self.scenario
         k = self.index
-        t_start = k * sc.frame_period_s
+        t_start = k / sc.frame_rate_hz
         heads = []
         for renderer, detector, noise, drops, drop_rng in zip(
             self.renderers, self.detectors, self.noise_rngs, self.drop_channels, self.drop_rngs, strict=True

@@ -1,0 +1,507 @@
+"""Star identification: lost in space by 4-star pattern hashing (Tetra), and tracking from a prior attitude.
+
+Lost in space (:class:`LostInSpaceIdentifier`)
+    Brown & Stubis' Tetra (J. Brown and K. Stubis, "TETRA: Star Identification with Hash Tables", AIAA/USU Conference
+    on Small Satellites, 2017), in the form of its successors tetra3 (ESA) and cedar-solve (S. Rosenthal): a pattern
+    of four stars is described by the five smaller of its six pairwise angular distances divided by the largest (edge
+    ratios, free of the plate scale), and each ratio is quantised into one of ``bins`` bins; the five bin numbers form
+    the pattern's key.  The database holds the keys of catalogue patterns sorted, so a lookup is a binary search
+    (the role of Tetra's open-addressing hash table).
+
+    *Database.*  Stars are the catalogue's down to ``mag_limit``; a star with another one closer than
+    ``_BLEND_PX`` pixels is never used in a pattern (the two would blend on the sensor).  Patterns are cedar-solve's
+    "brightest N per field": a Fibonacci lattice of centres covers the sky (spacing a quarter of the field), and the
+    ``pattern_stars_per_region`` brightest usable stars within half the field of each centre give every 4-star
+    combination of them; duplicates are merged.  The field is the largest head's shorter side (``fov_rad``), so a
+    pattern fits in a circle the head sees whole.  Patterns whose largest edge is below a quarter of the field are left
+    out: their ratios are too sensitive to centroid noise.  The database is cached on disk (see :func:`load_database`).
+
+    *Matching.*  All heads are pooled: each detection becomes a body-frame unit vector
+    ``camera.mounting.inv().apply(camera.unproject(xy))``.  4-star patterns are taken from the brightest detections
+    breadth-first (all patterns of the 5 brightest, then those adding the 6th, ...).  The edge tolerance is
+    ``3 sqrt(2)`` times the centroid noise (``centroid_noise_px``) at the coarsest plate scale; it fixes each ratio's
+    tolerance and so the bins probed (at most two a ratio, 32 keys a pattern).  A catalogue pattern found there must
+    also match all six edges in angle (the scale is known) under one of the 24 star orders.  Each such hypothesis is
+    solved for the attitude (SVD solution of Wahba's problem) and verified as in tetra3/cedar-solve: with ``n``
+    detections, ``m`` of them within ``match_radius_px`` of a catalogue star (pattern stars included) and ``p`` the
+    chance that a random detection lands that close to one (local catalogue density times the match area), the
+    probability of a false match is ``P(X >= m - 2)`` for ``X ~ Binomial(n, p)``; hypotheses below
+    ``match_threshold`` are verified.  Of the verified hypotheses of the first breadth-first step that has any, the
+    one matching most detections wins; the attitude is refined with all its matches and every detection within the
+    match radius of a catalogue star is labelled (one detection a star, the closest).
+
+Tracking (:class:`TrackingIdentifier`)
+    With a prior attitude (inertial -> body), the catalogue stars near each head's boresight are projected onto its
+    sensor and paired with the detections within ``gate_px`` (Hungarian assignment on squared distance, so each star
+    and each detection is used once); the attitude is refined from the pairs and the pairing repeated with
+    ``refine_gate_px``.  With no prior, or fewer than ``min_matches`` stars paired, the fallback (lost in space by
+    default) labels the frame.
+
+Ids are HIP numbers; -1 marks a detection left unidentified.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import itertools
+import math
+import os
+import tempfile
+import warnings
+import zipfile
+from dataclasses import astuple, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+from scipy.special import bdtrc
+
+from starenv import checks
+from starenv.agents.base import Identifier, Stars
+from starenv.optics import Camera
+from starenv.sky import StarCatalog, cache_dir
+
+METHOD_VERSION = 1  # bump when the database layout or its construction changes
+_N_SIGMA = 3.0  # edge tolerance in standard deviations of an edge's angle
+_BLEND_PX = 8.0  # stars closer than this (px, coarsest head) are not used in patterns
+_MIN_EDGE_FRACTION = 0.25  # smallest largest-edge of a pattern, as a fraction of the field
+_LATTICE_SPACING_FRACTION = 0.25  # spacing of the pattern-region centres, as a fraction of the field
+_MAX_BINS = 1000  # ratio bins per dimension at most (keys stay within int64)
+
+_EDGE_FROM, _EDGE_TO = np.triu_indices(4, 1)  # the six edges of a pattern: 01, 02, 03, 12, 13, 23
+_STAR_ORDERS = np.array(list(itertools.permutations(range(4))))  # (24, 4)
+_BIN_STEPS = np.array(list(itertools.product((0, 1), repeat=5)))  # (32, 5) lower bin or the one above, per ratio
+
+
+def _chord(angle_rad: float) -> float:
+    """Straight-line distance between two unit vectors ``angle_rad`` apart."""
+    return 2.0 * math.sin(min(angle_rad, math.pi) / 2.0)
+
+
+def _pattern_edges(vectors: np.ndarray) -> np.ndarray:
+    """The six pairwise angles (rad), ordered 01, 02, 03, 12, 13, 23, of unit-vector quadruples (..., 4, 3)."""
+    chord = np.linalg.norm(vectors[..., _EDGE_FROM, :] - vectors[..., _EDGE_TO, :], axis=-1)
+    return 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0))
+
+
+def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
+    """Attitude matrices (..., 3, 3), inertial -> body, minimising sum |b - A r|^2 over pairs (..., n, 3) (SVD)."""
+    u, _, vt = np.linalg.svd(np.einsum("...ni,...nj->...ij", body, inertial))
+    u[..., :, 2] *= (np.linalg.det(u) * np.linalg.det(vt))[..., None]
+    return u @ vt
+
+
+def _body_vectors(stars: list[Stars], cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pooled detections of all heads: body-frame unit vectors (n, 3), head of each (n,), index within its head (n,)."""
+    if len(stars) != len(cameras):
+        raise ValueError(f"stars must hold one Stars per camera ({len(cameras)}), got {len(stars)}")
+    vectors = [cam.unproject(s.xy) @ cam.mounting.as_matrix() for s, cam in zip(stars, cameras, strict=True)]
+    heads = np.repeat(np.arange(len(stars)), [len(s) for s in stars])
+    rows = np.concatenate([np.arange(len(s)) for s in stars]) if stars else np.zeros(0, dtype=np.intp)
+    return np.concatenate(vectors) if vectors else np.zeros((0, 3)), heads, rows.astype(np.intp)
+
+
+def _labelled(stars: list[Stars], ids: np.ndarray) -> list[Stars]:
+    """Copies of ``stars`` with catalogue ids from the pooled id array ``ids`` (heads in order)."""
+    out, start = [], 0
+    for s in stars:
+        out.append(Stars(s.xy.copy(), s.flux.copy(), ids[start : start + len(s)].copy()))
+        start += len(s)
+    return out
+
+
+def _fibonacci_sphere(count: int) -> np.ndarray:
+    """``count`` nearly evenly spread unit vectors (n, 3)."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    azimuth = math.pi * (3.0 - math.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=1)
+
+
+@dataclass(frozen=True)
+class DatabaseSettings:
+    """What a pattern database depends on besides the catalogue: field (rad), magnitude limit, edge tolerance (rad),
+    blend separation (rad) and stars per region."""
+
+    fov_rad: float
+    mag_limit: float
+    edge_tolerance_rad: float
+    blend_rad: float
+    pattern_stars_per_region: int
+
+    @property
+    def min_edge_rad(self) -> float:
+        """Smallest largest-edge of a pattern (rad)."""
+        return _MIN_EDGE_FRACTION * self.fov_rad
+
+    @property
+    def bins(self) -> int:
+        """Ratio bins per dimension: a bin is at least twice a ratio's tolerance, so a lookup probes <= 2 a ratio."""
+        worst_ratio_tolerance = 2.0 * self.edge_tolerance_rad / self.min_edge_rad
+        return int(np.clip(math.floor(1.0 / (2.0 * worst_ratio_tolerance)), 1, _MAX_BINS))
+
+
+@dataclass(frozen=True, eq=False)
+class PatternDatabase:
+    """A Tetra pattern database: the stars (catalogue order, Hp <= mag_limit), their 4-star patterns and sorted keys.
+
+    ``hip`` (n,), ``unit`` (n, 3) ICRS unit vectors; ``patterns`` (p, 4) rows into them; ``keys`` (p,) int64 sorted.
+    ``path`` is the cache file and ``from_cache`` says whether it was read from it rather than built.
+    """
+
+    settings: DatabaseSettings
+    hip: np.ndarray
+    unit: np.ndarray
+    patterns: np.ndarray
+    keys: np.ndarray
+    path: Path
+    from_cache: bool
+    tree: cKDTree = field(init=False, repr=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "tree", cKDTree(self.unit))
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+
+def pattern_keys(ratios: np.ndarray, bins: int) -> np.ndarray:
+    """Keys (int64) of edge ratios (..., 5) in [0, 1]: the five bin numbers as digits base ``bins``."""
+    digits = np.clip(np.floor(ratios * bins).astype(np.int64), 0, bins - 1)
+    return digits @ (np.int64(bins) ** np.arange(5, dtype=np.int64))
+
+
+def _usable_for_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: DatabaseSettings) -> np.ndarray:
+    """Rows of the stars that may join a pattern (no neighbour within the blend separation), brightest first."""
+    close = cKDTree(unit).query_pairs(_chord(settings.blend_rad), output_type="ndarray")
+    usable = np.ones(len(unit), dtype=bool)
+    usable[close.ravel()] = False
+    rows = np.flatnonzero(usable)
+    return rows[np.argsort(magnitude[rows], kind="stable")]
+
+
+def build_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: DatabaseSettings) -> tuple[np.ndarray, ...]:
+    """Patterns (p, 4) int32 rows of ``unit`` and their keys (p,) int64, sorted by key; see the module docstring."""
+    candidates = _usable_for_patterns(unit, magnitude, settings)
+    per_region = settings.pattern_stars_per_region
+    spacing = _LATTICE_SPACING_FRACTION * settings.fov_rad
+    centres = _fibonacci_sphere(max(12, math.ceil(4.0 * math.pi / spacing**2)))
+    near = cKDTree(centres).sparse_distance_matrix(
+        cKDTree(unit[candidates]), _chord(settings.fov_rad / 2.0), output_type="ndarray"
+    )
+    # Group (centre, star) pairs by centre, brightest star first (candidates are sorted by brightness).
+    order = np.lexsort((near["j"], near["i"]))
+    centre, star = near["i"][order], near["j"][order]
+    rank = np.arange(len(centre)) - np.searchsorted(centre, centre)
+    kept = rank < per_region
+    brightest = np.full((len(centres), per_region), -1, dtype=np.int64)
+    brightest[centre[kept], rank[kept]] = candidates[star[kept]]
+    quads = brightest[:, np.array(list(itertools.combinations(range(per_region), 4)))].reshape(-1, 4)
+    quads = np.sort(quads[np.all(quads >= 0, axis=1)], axis=1)
+    high, low = quads[:, 0] * len(unit) + quads[:, 1], quads[:, 2] * len(unit) + quads[:, 3]
+    order = np.lexsort((low, high))
+    high, low, quads = high[order], low[order], quads[order]
+    first = np.ones(len(quads), dtype=bool)
+    first[1:] = (high[1:] != high[:-1]) | (low[1:] != low[:-1])
+    quads = quads[first]
+    edges = np.sort(_pattern_edges(unit[quads]), axis=1)
+    quads = quads[edges[:, 5] >= settings.min_edge_rad]
+    edges = edges[edges[:, 5] >= settings.min_edge_rad]
+    keys = pattern_keys(edges[:, :5] / edges[:, 5:], settings.bins)
+    order = np.argsort(keys, kind="stable")
+    return quads[order].astype(np.int32), keys[order]
+
+
+def _database_file(settings: DatabaseSettings, hip: np.ndarray, unit: np.ndarray, epoch: float) -> tuple[Path, str]:
+    """Cache file and identity string of the database for ``settings`` and these stars."""
+    digest = hashlib.sha256()
+    digest.update(repr((METHOD_VERSION, float(epoch), astuple(settings))).encode())
+    digest.update(np.ascontiguousarray(hip, dtype=np.int64).tobytes())
+    digest.update(np.ascontiguousarray(unit, dtype=np.float64).tobytes())
+    identity = digest.hexdigest()
+    return cache_dir() / "identify" / f"tetra-{identity[:24]}.npz", identity
+
+
+def _read_database(file: Path, identity: str, n_stars: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Patterns and keys stored in ``file`` if it is readable, complete and for ``identity``; else None."""
+    try:
+        with np.load(file, allow_pickle=False) as stored:
+            patterns, keys = stored["patterns"], stored["keys"]
+            ok = (
+                str(stored["identity"]) == identity
+                and patterns.dtype == np.int32
+                and keys.dtype == np.int64
+                and patterns.shape == (len(keys), 4)
+                and (len(keys) == 0 or (patterns.min() >= 0 and patterns.max() < n_stars))
+                and bool(np.all(keys[1:] >= keys[:-1]))
+            )
+            return (patterns, keys) if ok else None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+
+
+def _write_database(file: Path, identity: str, patterns: np.ndarray, keys: np.ndarray) -> None:
+    """Store the database atomically (temporary file, then ``os.replace``); a failure to write only warns."""
+    try:
+        file.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(prefix=file.name + ".", suffix=".tmp", dir=file.parent)
+        try:
+            with os.fdopen(handle, "wb") as out:
+                np.savez(out, identity=np.str_(identity), patterns=patterns, keys=keys)
+            os.replace(temporary, file)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(temporary)
+            raise
+    except OSError as exc:
+        warnings.warn(f"could not write the pattern database cache {file}: {exc}", RuntimeWarning, stacklevel=3)
+
+
+def load_database(catalog: StarCatalog, settings: DatabaseSettings) -> PatternDatabase:
+    """The pattern database of ``catalog``'s stars down to ``settings.mag_limit``, from disk or built (and stored).
+
+    The cache file lives in ``starenv.sky.cache_dir() / "identify"``, named by a hash of the method version, the
+    catalogue (HIP numbers, positions, epoch) and ``settings``; an unreadable or foreign file is rebuilt.
+    """
+    bright = catalog.magnitude <= settings.mag_limit
+    hip, unit = catalog.hip[bright], catalog.unit[bright]
+    file, identity = _database_file(settings, hip, unit, catalog.epoch)
+    stored = _read_database(file, identity, len(hip))
+    if stored is None:
+        patterns, keys = build_patterns(unit, catalog.magnitude[bright], settings)
+        _write_database(file, identity, patterns, keys)
+    else:
+        patterns, keys = stored
+    return PatternDatabase(settings, hip, unit, patterns, keys, file, stored is not None)
+
+
+def _breadth_first_quads(count: int) -> list[np.ndarray]:
+    """4-subsets of ``range(count)`` in steps: those within the 5 first, then those adding index 5, 6, ..."""
+    first = np.array(list(itertools.combinations(range(min(count, 5)), 4)), dtype=np.intp).reshape(-1, 4)
+    steps = [first]
+    for last in range(5, count):
+        others = np.array(list(itertools.combinations(range(last), 3)), dtype=np.intp)
+        steps.append(np.column_stack([others, np.full(len(others), last)]))
+    return steps
+
+
+class LostInSpaceIdentifier:
+    """Identification without a prior attitude by Tetra 4-star pattern hashing (see the module docstring).
+
+    ``mag_limit`` (Hp) bounds the database stars; ``pattern_stars_per_region`` is the number of brightest stars per
+    field-sized region that form patterns; ``centroid_noise_px`` (1-sigma, per axis) sets the pattern tolerance;
+    ``match_radius_px`` is the verification and labelling radius; ``match_threshold`` the largest accepted
+    probability of a false match; patterns are drawn from the ``max_pattern_stars`` brightest detections.
+    """
+
+    def __init__(
+        self,
+        mag_limit: float = 6.0,
+        pattern_stars_per_region: int = 10,
+        centroid_noise_px: float = 0.5,
+        match_radius_px: float = 3.0,
+        match_threshold: float = 1e-5,
+        max_pattern_stars: int = 12,
+    ):
+        self.mag_limit = checks.in_range("mag_limit", mag_limit, -2.0, 14.0, unit="mag")
+        self.pattern_stars_per_region = checks.integer("pattern_stars_per_region", pattern_stars_per_region, 4, 30)
+        self.centroid_noise_px = checks.in_range("centroid_noise_px", centroid_noise_px, 0.0, 10.0, low_open=True)
+        self.match_radius_px = checks.in_range("match_radius_px", match_radius_px, 0.0, 100.0, low_open=True)
+        self.match_threshold = checks.in_range("match_threshold", match_threshold, 0.0, 1.0, low_open=True)
+        self.max_pattern_stars = checks.integer("max_pattern_stars", max_pattern_stars, 4, 30)
+        self._quad_steps = _breadth_first_quads(self.max_pattern_stars)
+        self.database: PatternDatabase | None = None
+
+    def settings_for(self, cameras: list[Camera]) -> DatabaseSettings:
+        """Database settings for these heads: the largest head's shorter field side, its coarsest plate scale."""
+        if not cameras:
+            raise ValueError("cameras must hold at least one Camera")
+        pixel_rad = max(1.0 / min(cam.fx, cam.fy) for cam in cameras)
+        return DatabaseSettings(
+            fov_rad=max(min(cam.fov) for cam in cameras),
+            mag_limit=self.mag_limit,
+            edge_tolerance_rad=_N_SIGMA * math.sqrt(2.0) * self.centroid_noise_px * pixel_rad,
+            blend_rad=_BLEND_PX * pixel_rad,
+            pattern_stars_per_region=self.pattern_stars_per_region,
+        )
+
+    def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
+        """Load (or build and cache) the pattern database for these heads and catalogue."""
+        self.database = load_database(catalog, self.settings_for(cameras))
+
+    def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None = None) -> list[Stars]:
+        """Label all heads' detections with HIP numbers (-1: unidentified); ``prior`` is not used."""
+        ids, _ = self.solve(stars, cameras)
+        return _labelled(stars, ids)
+
+    def solve(self, stars: list[Stars], cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray | None]:
+        """Pooled HIP ids (n,) of all heads' detections (heads in order) and the attitude matrix (inertial -> body)
+        refined on them, or None where no hypothesis verified."""
+        if self.database is None:
+            raise RuntimeError("call reset(cameras, catalog) before identify")
+        body, heads, _ = _body_vectors(stars, cameras)
+        ids = np.full(len(body), -1, dtype=np.int64)
+        if len(body) < 4:
+            return ids, None
+        radius = np.array([self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras])[heads]
+        boresights = np.stack([cam.mounting.as_matrix()[2] for cam in cameras])
+        flux = np.concatenate([s.flux for s in stars])
+        by_brightness = np.argsort(-flux, kind="stable")[: self.max_pattern_stars]
+        for step in self._quad_steps:
+            quads = step[np.all(step < len(by_brightness), axis=1)]
+            if len(quads) == 0:
+                break
+            attitude = self._best_hypothesis(body, by_brightness[quads], radius, boresights[np.unique(heads)])
+            if attitude is not None:
+                matched, rows = self._matches(body, attitude, radius)
+                attitude = _wahba(body[matched], self.database.unit[rows])
+                matched, rows = self._matches(body, attitude, radius)
+                ids[matched] = self.database.hip[rows]
+                return ids, attitude
+        return ids, None
+
+    def _candidates(self, quad_vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(quad, catalogue star rows (k, 4) in the quad's star order) for the catalogue patterns matching the quads."""
+        db = self.database
+        settings = db.settings
+        tolerance = settings.edge_tolerance_rad
+        edges = _pattern_edges(quad_vectors)  # (q, 6)
+        ordered = np.sort(edges, axis=1)
+        largest = ordered[:, 5]
+        fits = (largest <= settings.fov_rad + tolerance) & (largest >= settings.min_edge_rad - tolerance)
+        fits &= ordered[:, 0] >= settings.blend_rad
+        quad_index = np.flatnonzero(fits)
+        ratios = ordered[fits, :5] / largest[fits, None]
+        ratio_tolerance = tolerance * (1.0 + ratios) / largest[fits, None]
+        bins = settings.bins
+        low = np.clip(np.floor((ratios - ratio_tolerance) * bins).astype(np.int64), 0, bins - 1)
+        high = np.clip(np.floor((ratios + ratio_tolerance) * bins).astype(np.int64), 0, bins - 1)
+        steps_ok = np.all(_BIN_STEPS[None] <= (high - low)[:, None, :], axis=2)  # (q, 32)
+        keys = (low[:, None, :] + _BIN_STEPS[None]) @ (np.int64(bins) ** np.arange(5, dtype=np.int64))
+        owner, step = np.nonzero(steps_ok)
+        keys = keys[owner, step]
+        first = np.searchsorted(db.keys, keys, side="left")
+        count = np.searchsorted(db.keys, keys, side="right") - first
+        owner = np.repeat(owner, count)
+        pattern = np.repeat(first - np.cumsum(count) + count, count) + np.arange(count.sum())
+        quad_of = quad_index[owner]
+        catalog_rows = db.patterns[pattern]  # (k, 4)
+        orders = catalog_rows[:, _STAR_ORDERS]  # (k, 24, 4)
+        miss = np.max(np.abs(_pattern_edges(db.unit[orders]) - edges[quad_of, None, :]), axis=2)  # (k, 24)
+        best = np.argmin(miss, axis=1)
+        close = miss[np.arange(len(best)), best] <= tolerance
+        return quad_of[close], orders[close, best[close]]
+
+    def _best_hypothesis(
+        self, body: np.ndarray, quads: np.ndarray, radius: np.ndarray, boresights: np.ndarray
+    ) -> np.ndarray | None:
+        """The verified attitude (3, 3) matching most detections among the quads' hypotheses, or None."""
+        db = self.database
+        quad_of, catalog_rows = self._candidates(body[quads])
+        if len(quad_of) == 0:
+            return None
+        pattern_body = body[quads[quad_of]]  # (k, 4, 3)
+        attitudes = _wahba(pattern_body, db.unit[catalog_rows])
+        predicted = np.einsum("kij,knj->kni", attitudes, db.unit[catalog_rows])
+        fit = np.all(np.linalg.norm(predicted - pattern_body, axis=2) <= radius[quads[quad_of]], axis=1)
+        best, best_count = None, 0
+        field_radius = db.settings.fov_rad / 2.0
+        cap = 2.0 * math.pi * (1.0 - math.cos(field_radius))
+        for attitude in attitudes[fit]:
+            matched, _ = self._matches(body, attitude, radius)
+            m = len(matched)
+            if m <= best_count:
+                continue
+            nearby = db.tree.query_ball_point(boresights @ attitude, _chord(field_radius), return_length=True)
+            p_single = float(np.max(nearby)) / cap * math.pi * float(np.max(radius)) ** 2
+            if m >= 3 and bdtrc(m - 3, len(body), min(p_single, 1.0)) < self.match_threshold:
+                best, best_count = attitude, m
+        return best
+
+    def _matches(self, body: np.ndarray, attitude: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Detections (rows of ``body``) within ``radius`` of a catalogue star under ``attitude``, and those stars;
+        each star keeps only its closest detection."""
+        distance, rows = self.database.tree.query(body @ attitude, distance_upper_bound=float(np.max(radius)))
+        matched = np.flatnonzero(distance <= radius)
+        matched = matched[np.argsort(distance[matched], kind="stable")]
+        _, first = np.unique(rows[matched], return_index=True)
+        matched = np.sort(matched[first])
+        return matched, rows[matched]
+
+
+class TrackingIdentifier:
+    """Identification from a prior attitude by gated nearest-star pairing; lost in space when that fails.
+
+    ``gate_px`` is the first pairing radius, ``refine_gate_px`` the radius after refining the attitude on the first
+    pairs; fewer than ``min_matches`` pairs (or no prior) hands the frame to ``fallback``
+    (default :class:`LostInSpaceIdentifier` with its defaults).  The catalogue is the one given to :meth:`reset`.
+    """
+
+    def __init__(
+        self,
+        fallback: Identifier | None = None,
+        gate_px: float = 5.0,
+        refine_gate_px: float = 2.0,
+        min_matches: int = 3,
+    ):
+        if fallback is not None and not isinstance(fallback, Identifier):
+            raise ValueError(f"fallback must implement the Identifier protocol, got {type(fallback).__name__}")
+        self.fallback = LostInSpaceIdentifier() if fallback is None else fallback
+        self.gate_px = checks.in_range("gate_px", gate_px, 0.0, 1000.0, low_open=True, unit="px")
+        self.refine_gate_px = checks.in_range(
+            "refine_gate_px", refine_gate_px, 0.0, self.gate_px, low_open=True, unit="px"
+        )
+        self.min_matches = checks.integer("min_matches", min_matches, 3, 1000)
+        self.catalog: StarCatalog | None = None
+
+    def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
+        """Keep the catalogue and reset the fallback."""
+        self.catalog = catalog
+        self.fallback.reset(cameras, catalog)
+
+    def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None) -> list[Stars]:
+        """Label all heads' detections with HIP numbers (-1: unidentified), tracking from ``prior`` if it is given."""
+        if self.catalog is None:
+            raise RuntimeError("call reset(cameras, catalog) before identify")
+        if prior is not None:
+            body, _, _ = _body_vectors(stars, cameras)
+            attitude = prior.as_matrix()
+            detections, rows = self._pairs(stars, cameras, attitude, self.gate_px)
+            if len(rows) >= self.min_matches:
+                attitude = _wahba(body[detections], self.catalog.unit[rows])
+                detections, rows = self._pairs(stars, cameras, attitude, self.refine_gate_px)
+                if len(rows) >= self.min_matches:
+                    ids = np.full(len(body), -1, dtype=np.int64)
+                    ids[detections] = self.catalog.hip[rows]
+                    return _labelled(stars, ids)
+        return self.fallback.identify(stars, cameras, prior)
+
+    def _pairs(
+        self, stars: list[Stars], cameras: list[Camera], attitude: np.ndarray, gate_px: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Pooled detection indices and catalogue rows paired within ``gate_px`` under ``attitude`` (3, 3)."""
+        detections, rows, start = [], [], 0
+        for s, cam in zip(stars, cameras, strict=True):
+            if len(s):
+                to_camera = cam.mounting.as_matrix() @ attitude
+                reach = _chord(cam.half_diagonal + 2.0 * gate_px / min(cam.fx, cam.fy))
+                near = np.asarray(self.catalog.tree.query_ball_point(to_camera[2], reach), dtype=np.intp)
+                xy, front = cam.project(self.catalog.unit[near] @ to_camera.T)
+                inside = front & cam.in_frame(xy, gate_px)
+                near, xy = near[inside], xy[inside]
+                distance = np.linalg.norm(s.xy[:, None, :] - xy[None, :, :], axis=2)
+                gated = distance <= gate_px
+                if gated.any():
+                    cost = np.where(gated, distance**2, 4.0 * gate_px**2 * len(s))
+                    det, cat = linear_sum_assignment(cost)
+                    keep = gated[det, cat]
+                    detections.append(start + det[keep])
+                    rows.append(near[cat[keep]])
+            start += len(s)
+        if not rows:
+            return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+        return np.concatenate(detections), np.concatenate(rows)

@@ -9,9 +9,9 @@ Star-level metrics use the truth of one head's frame:
 * centroid: each detection is matched one-to-one (Hungarian assignment) to a true star's intensity-weighted trail
   centroid (``xy_centroid``) within ``gate_px``; error = Euclidean distance (px).  Recall = matched detectable stars /
   detectable stars; precision = matched detections / detections.
-* identification: a claimed catalog id is correct when its detection is matched to the star with that id.  ID rate =
-  correct / detectable stars; false-ID rate = wrong ids / claimed ids; the frame is solved when >= 3 ids are correct
-  and none is wrong.
+* identification: a claimed catalog id is correct when the star with that id lies within ``gate_px`` of its detection
+  (so either member of an unresolved double counts for the blended spot).  ID rate = correct / detectable stars;
+  false-ID rate = wrong ids / claimed ids; the frame is solved when >= 3 ids are correct and none is wrong.
 * prediction: predicted positions (catalog id, x, y) against the true mid-exposure position ``xy_mid`` of the same
   star; counted on dropped frames too (truth exists for every frame).
 """
@@ -101,9 +101,10 @@ def score_stars(
             s.detection_precision = float(len(det) / len(detected_xy))
         if claimed_ids is not None:
             claimed = claimed_ids >= 0
-            true_id = np.full(len(detected_xy), -1, dtype=np.int64)
-            true_id[det] = truth.catalog_id[tru]
-            correct = claimed & (claimed_ids == true_id)
+            rows = {int(h): i for i, h in enumerate(truth.catalog_id)}
+            star = np.array([rows.get(int(h), -1) for h in claimed_ids], dtype=np.intp)
+            near = np.linalg.norm(detected_xy - truth.xy_centroid[np.maximum(star, 0)], axis=1) <= gate_px
+            correct = claimed & (star >= 0) & near
             s.ids_correct = int(correct.sum())
             s.ids_wrong = int((claimed & ~correct).sum())
             if n_detectable:

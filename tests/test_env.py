@@ -208,7 +208,8 @@ def test_star_stage_scores_against_truth():
     xy[0, :n] = stars["xy_centroid"] + [0.3, -0.4]  # every detection 0.5 px off
     ids = np.full((1, MAX_STARS), -1)
     ids[0, :n] = stars["catalog_id"]
-    ids[0, 0] = stars["catalog_id"][1]  # one wrong id
+    far = int(np.argmax(np.linalg.norm(stars["xy_centroid"] - stars["xy_centroid"][0], axis=1)))
+    ids[0, 0] = stars["catalog_id"][far]  # one wrong id: a star far from detection 0
     mask = np.zeros((1, MAX_STARS), np.int8)
     mask[0, :n] = 1
     pred = np.zeros((1, MAX_STARS, 2))
@@ -222,7 +223,7 @@ def test_star_stage_scores_against_truth():
     assert s["ids_correct"] == n - 1 and s["ids_wrong"] == 1 and s["false_id_rate"] == pytest.approx(1 / n)
     assert not s["solved"]  # a wrong id spoils the frame
     assert s["predictions_scored"] == n
-    # the wrongly labelled prediction (row 0 carries star 1's id) is scored against star 1's position
+    # the wrongly labelled prediction (row 0 carries the far star's id) is scored against that star's position
     assert s["prediction_error_px_max"] > 1.0 and s["prediction_error_px_mean"] > 1.0
 
 

@@ -2,40 +2,46 @@
 
 Lost in space (:class:`LostInSpaceIdentifier`)
     Brown & Stubis' Tetra (J. Brown and K. Stubis, "TETRA: Star Identification with Hash Tables", AIAA/USU Conference
-    on Small Satellites, 2017), in the form of its successors tetra3 (ESA) and cedar-solve (S. Rosenthal): a pattern
+    on Small Satellites, 2017), in the form of its successors tetra3 (ESA) and its fork cedar-solve: a pattern
     of four stars is described by the five smaller of its six pairwise angular distances divided by the largest (edge
     ratios, free of the plate scale), and each ratio is quantised into one of ``bins`` bins; the five bin numbers form
     the pattern's key.  The database holds the keys of catalogue patterns sorted, so a lookup is a binary search
     (the role of Tetra's open-addressing hash table).
 
     *Database.*  Stars are the catalogue's down to ``mag_limit``; a star with another one closer than
-    ``_BLEND_PX`` pixels is never used in a pattern (the two would blend on the sensor).  Patterns are cedar-solve's
-    "brightest N per field": a Fibonacci lattice of centres covers the sky (spacing a quarter of the field), and the
+    ``_BLEND_PX`` pixels is never used in a pattern (the two would blend on the sensor).  Patterns come from tetra3's
+    lattice fields: a Fibonacci lattice of centres covers the sky (spacing a quarter of the field), and the
     ``pattern_stars_per_region`` brightest usable stars within half the field of each centre give every 4-star
     combination of them; duplicates are merged.  The field is the largest head's shorter side (``fov_rad``), so a
     pattern fits in a circle the head sees whole.  Patterns whose largest edge is below a quarter of the field are left
     out: their ratios are too sensitive to centroid noise.  The database is cached on disk (see :func:`load_database`).
 
     *Matching.*  All heads are pooled: each detection becomes a body-frame unit vector
-    ``camera.mounting.inv().apply(camera.unproject(xy))``.  4-star patterns are taken from the brightest detections
-    breadth-first (all patterns of the 5 brightest, then those adding the 6th, ...).  The edge tolerance is
-    ``3 sqrt(2)`` times the centroid noise (``centroid_noise_px``) at the coarsest plate scale; it fixes each ratio's
-    tolerance and so the bins probed (at most two a ratio, 32 keys a pattern).  A catalogue pattern found there must
-    also match all six edges in angle (the scale is known) under one of the 24 star orders.  Each such hypothesis is
-    solved for the attitude (SVD solution of Wahba's problem) and verified as in tetra3/cedar-solve: with ``n``
-    detections, ``m`` of them within ``match_radius_px`` of a catalogue star (pattern stars included) and ``p`` the
-    chance that a random detection lands that close to one (local catalogue density times the match area), the
-    probability of a false match is ``P(X >= m - 2)`` for ``X ~ Binomial(n, p)``; hypotheses below
+    ``camera.mounting.inv().apply(camera.unproject(xy))``.  4-star patterns are taken within each head (a pattern must
+    fit in one field) from its brightest detections, breadth-first: all patterns of the 5 brightest, then those adding
+    the 6th, ... up to ``max_pattern_stars``, every head at the same pace.  The edge tolerance is ``3 sqrt(2)`` times
+    the centroid noise (``centroid_noise_px``) at the coarsest plate scale; it fixes each ratio's tolerance and so the
+    bins probed (at most two a ratio, 32 keys a pattern).  A catalogue pattern found there must also match the largest
+    edge and then all six edges in angle (the scale is known) under one of the 24 star orders.  Each such hypothesis
+    is solved for the attitude (SVD solution of Wahba's problem) and verified as in tetra3/cedar-solve: with ``n``
+    detections in all heads, ``m`` of them within ``match_radius_px`` of a catalogue star (pattern stars included)
+    and ``p`` the chance that a random detection lands that close to one (local catalogue density times the match
+    area), the probability of a false match is ``P(X >= m - 2)`` for ``X ~ Binomial(n, p)``; hypotheses below
     ``match_threshold`` are verified.  Of the verified hypotheses of the first breadth-first step that has any, the
-    one matching most detections wins; the attitude is refined with all its matches and every detection within the
-    match radius of a catalogue star is labelled (one detection a star, the closest).
+    one matching most detections wins.  Matching and refining the attitude then alternate, the search widened by the
+    attitude's uncertainty (a pattern in one small field leaves the roll about it loose, which moves the stars of the
+    other heads), and every detection within the match radius of a catalogue star is labelled (one detection a star,
+    the closest).
 
 Tracking (:class:`TrackingIdentifier`)
-    With a prior attitude (inertial -> body), the catalogue stars near each head's boresight are projected onto its
-    sensor and paired with the detections within ``gate_px`` (Hungarian assignment on squared distance, so each star
-    and each detection is used once); the attitude is refined from the pairs and the pairing repeated with
-    ``refine_gate_px``.  With no prior, or fewer than ``min_matches`` stars paired, the fallback (lost in space by
-    default) labels the frame.
+    With a prior attitude (inertial -> body), the catalogue stars near each head's boresight (a cone query) are
+    rotated into the body frame and paired with the detections' body vectors within ``gate_px`` (an angle through
+    each head's plate scale) by a Hungarian assignment on squared distance, so each star and each detection is used
+    once; the attitude is refined from the pairs and the pairing repeated with ``refine_gate_px``.  With no prior, or
+    fewer than ``min_matches`` stars paired, the fallback (lost in space by default) labels the frame.
+
+    Both identifiers take a star closer than ``_MERGE_PX`` pixels to a brighter one as part of it (the sensor sees
+    one star): detections are matched to the brighter only.
 
 Ids are HIP numbers; -1 marks a detection left unidentified.
 """
@@ -67,12 +73,17 @@ from starenv.sky import StarCatalog, cache_dir
 METHOD_VERSION = 1  # bump when the database layout or its construction changes
 _N_SIGMA = 3.0  # edge tolerance in standard deviations of an edge's angle
 _BLEND_PX = 8.0  # stars closer than this (px, coarsest head) are not used in patterns
+_MERGE_PX = 2.0  # a star closer than this (px, coarsest head) to a brighter one is taken as part of it
 _MIN_EDGE_FRACTION = 0.25  # smallest largest-edge of a pattern, as a fraction of the field
 _LATTICE_SPACING_FRACTION = 0.25  # spacing of the pattern-region centres, as a fraction of the field
+_SAME_ATTITUDE_TRACE = 1e-6  # 3 - trace(A B^T) below this (under 1 mrad apart): the same attitude
+_GROW_STEPS = 4  # match-and-refine rounds after a hypothesis is accepted
+_GROW_MAX = 10.0  # widest search in those rounds, in match radii
 _MAX_BINS = 1000  # ratio bins per dimension at most (keys stay within int64)
 
 _EDGE_FROM, _EDGE_TO = np.triu_indices(4, 1)  # the six edges of a pattern: 01, 02, 03, 12, 13, 23
 _STAR_ORDERS = np.array(list(itertools.permutations(range(4))))  # (24, 4)
+_TABLES = ("patterns", "keys", "largest_edge")  # the database arrays, in the order build_patterns returns them
 _BIN_STEPS = np.array(list(itertools.product((0, 1), repeat=5)))  # (32, 5) lower bin or the one above, per ratio
 
 
@@ -94,14 +105,13 @@ def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
-def _body_vectors(stars: list[Stars], cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pooled detections of all heads: body-frame unit vectors (n, 3), head of each (n,), index within its head (n,)."""
+def _body_vectors(stars: list[Stars], cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    """Pooled detections of all heads (heads in order): body-frame unit vectors (n, 3) and the head of each (n,)."""
     if len(stars) != len(cameras):
         raise ValueError(f"stars must hold one Stars per camera ({len(cameras)}), got {len(stars)}")
     vectors = [cam.unproject(s.xy) @ cam.mounting.as_matrix() for s, cam in zip(stars, cameras, strict=True)]
     heads = np.repeat(np.arange(len(stars)), [len(s) for s in stars])
-    rows = np.concatenate([np.arange(len(s)) for s in stars]) if stars else np.zeros(0, dtype=np.intp)
-    return np.concatenate(vectors) if vectors else np.zeros((0, 3)), heads, rows.astype(np.intp)
+    return np.concatenate(vectors) if vectors else np.zeros((0, 3)), heads
 
 
 def _labelled(stars: list[Stars], ids: np.ndarray) -> list[Stars]:
@@ -125,12 +135,13 @@ def _fibonacci_sphere(count: int) -> np.ndarray:
 @dataclass(frozen=True)
 class DatabaseSettings:
     """What a pattern database depends on besides the catalogue: field (rad), magnitude limit, edge tolerance (rad),
-    blend separation (rad) and stars per region."""
+    blend and merge separations (rad) and stars per region."""
 
     fov_rad: float
     mag_limit: float
     edge_tolerance_rad: float
     blend_rad: float
+    merge_rad: float
     pattern_stars_per_region: int
 
     @property
@@ -149,30 +160,53 @@ class DatabaseSettings:
 class PatternDatabase:
     """A Tetra pattern database: the stars (catalogue order, Hp <= mag_limit), their 4-star patterns and sorted keys.
 
-    ``hip`` (n,), ``unit`` (n, 3) ICRS unit vectors; ``patterns`` (p, 4) rows into them; ``keys`` (p,) int64 sorted.
-    ``path`` is the cache file and ``from_cache`` says whether it was read from it rather than built.
+    ``hip`` (n,), ``magnitude`` (n,) Hp and ``unit`` (n, 3) ICRS unit vectors of the stars; ``patterns`` (p, 4) rows
+    into them, ``keys`` (p,) int64 sorted and ``largest_edge`` (p,) float32 the largest pairwise angle of each pattern
+    (rad).  ``path`` is the cache file and ``from_cache`` says whether it was read from it rather than built.
+    ``match_rows`` are the stars detections are matched to (none within the merge separation of a brighter star),
+    ``tree`` their k-d tree.
     """
 
     settings: DatabaseSettings
     hip: np.ndarray
+    magnitude: np.ndarray
     unit: np.ndarray
     patterns: np.ndarray
     keys: np.ndarray
+    largest_edge: np.ndarray
     path: Path
     from_cache: bool
+    match_rows: np.ndarray = field(init=False, repr=False)
     tree: cKDTree = field(init=False, repr=False)
 
     def __post_init__(self):
-        object.__setattr__(self, "tree", cKDTree(self.unit))
+        rows = np.flatnonzero(resolvable(self.unit, self.magnitude, self.settings.merge_rad))
+        object.__setattr__(self, "match_rows", rows)
+        object.__setattr__(self, "tree", cKDTree(self.unit[rows]))
 
     def __len__(self) -> int:
         return len(self.keys)
 
 
-def pattern_keys(ratios: np.ndarray, bins: int) -> np.ndarray:
-    """Keys (int64) of edge ratios (..., 5) in [0, 1]: the five bin numbers as digits base ``bins``."""
-    digits = np.clip(np.floor(ratios * bins).astype(np.int64), 0, bins - 1)
+def _bins_to_keys(digits: np.ndarray, bins: int) -> np.ndarray:
+    """Keys (int64) of the five bin numbers (..., 5) of patterns, read as digits base ``bins``."""
     return digits @ (np.int64(bins) ** np.arange(5, dtype=np.int64))
+
+
+def pattern_keys(ratios: np.ndarray, bins: int) -> np.ndarray:
+    """Keys (int64) of edge ratios (..., 5) in [0, 1], each quantised into ``bins`` bins."""
+    return _bins_to_keys(np.clip(np.floor(ratios * bins).astype(np.int64), 0, bins - 1), bins)
+
+
+def resolvable(unit: np.ndarray, magnitude: np.ndarray, merge_rad: float) -> np.ndarray:
+    """Mask (n,) of the stars with no brighter star (or equal one listed earlier) within ``merge_rad``: a sensor sees
+    each pair closer than that as one star, the brighter."""
+    pairs = cKDTree(unit).query_pairs(_chord(merge_rad), output_type="ndarray")
+    a, b = pairs[:, 0], pairs[:, 1]
+    fainter = np.where((magnitude[b] > magnitude[a]) | ((magnitude[b] == magnitude[a]) & (b > a)), b, a)
+    keep = np.ones(len(unit), dtype=bool)
+    keep[fainter] = False
+    return keep
 
 
 def _usable_for_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: DatabaseSettings) -> np.ndarray:
@@ -185,7 +219,8 @@ def _usable_for_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: Data
 
 
 def build_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: DatabaseSettings) -> tuple[np.ndarray, ...]:
-    """Patterns (p, 4) int32 rows of ``unit`` and their keys (p,) int64, sorted by key; see the module docstring."""
+    """Patterns (p, 4) int32 rows of ``unit``, their keys (p,) int64 and largest edges (p,) float32 rad, sorted by
+    key; see the module docstring."""
     candidates = _usable_for_patterns(unit, magnitude, settings)
     per_region = settings.pattern_stars_per_region
     spacing = _LATTICE_SPACING_FRACTION * settings.fov_rad
@@ -198,22 +233,23 @@ def build_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: DatabaseSe
     centre, star = near["i"][order], near["j"][order]
     rank = np.arange(len(centre)) - np.searchsorted(centre, centre)
     kept = rank < per_region
-    brightest = np.full((len(centres), per_region), -1, dtype=np.int64)
+    brightest = np.full((len(centres), per_region), -1, dtype=np.int32)
     brightest[centre[kept], rank[kept]] = candidates[star[kept]]
     quads = brightest[:, np.array(list(itertools.combinations(range(per_region), 4)))].reshape(-1, 4)
     quads = np.sort(quads[np.all(quads >= 0, axis=1)], axis=1)
-    high, low = quads[:, 0] * len(unit) + quads[:, 1], quads[:, 2] * len(unit) + quads[:, 3]
+    wide_quads = quads.astype(np.int64)
+    high, low = wide_quads[:, 0] * len(unit) + wide_quads[:, 1], wide_quads[:, 2] * len(unit) + wide_quads[:, 3]
     order = np.lexsort((low, high))
     high, low, quads = high[order], low[order], quads[order]
     first = np.ones(len(quads), dtype=bool)
     first[1:] = (high[1:] != high[:-1]) | (low[1:] != low[:-1])
     quads = quads[first]
     edges = np.sort(_pattern_edges(unit[quads]), axis=1)
-    quads = quads[edges[:, 5] >= settings.min_edge_rad]
-    edges = edges[edges[:, 5] >= settings.min_edge_rad]
+    wide = edges[:, 5] >= settings.min_edge_rad
+    quads, edges = quads[wide], edges[wide]
     keys = pattern_keys(edges[:, :5] / edges[:, 5:], settings.bins)
     order = np.argsort(keys, kind="stable")
-    return quads[order].astype(np.int32), keys[order]
+    return quads[order], keys[order], edges[order, 5].astype(np.float32)
 
 
 def _database_file(settings: DatabaseSettings, hip: np.ndarray, unit: np.ndarray, epoch: float) -> tuple[Path, str]:
@@ -226,32 +262,35 @@ def _database_file(settings: DatabaseSettings, hip: np.ndarray, unit: np.ndarray
     return cache_dir() / "identify" / f"tetra-{identity[:24]}.npz", identity
 
 
-def _read_database(file: Path, identity: str, n_stars: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """Patterns and keys stored in ``file`` if it is readable, complete and for ``identity``; else None."""
+def _read_database(file: Path, identity: str, n_stars: int) -> tuple[np.ndarray, ...] | None:
+    """Patterns, keys and largest edges stored in ``file`` if it is readable, complete and for ``identity``; else
+    None."""
     try:
         with np.load(file, allow_pickle=False) as stored:
-            patterns, keys = stored["patterns"], stored["keys"]
+            patterns, keys, largest_edge = (stored[name] for name in _TABLES)
             ok = (
                 str(stored["identity"]) == identity
                 and patterns.dtype == np.int32
                 and keys.dtype == np.int64
+                and largest_edge.dtype == np.float32
                 and patterns.shape == (len(keys), 4)
+                and largest_edge.shape == keys.shape
                 and (len(keys) == 0 or (patterns.min() >= 0 and patterns.max() < n_stars))
                 and bool(np.all(keys[1:] >= keys[:-1]))
             )
-            return (patterns, keys) if ok else None
+            return (patterns, keys, largest_edge) if ok else None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
 
 
-def _write_database(file: Path, identity: str, patterns: np.ndarray, keys: np.ndarray) -> None:
+def _write_database(file: Path, identity: str, tables: tuple[np.ndarray, ...]) -> None:
     """Store the database atomically (temporary file, then ``os.replace``); a failure to write only warns."""
     try:
         file.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(prefix=file.name + ".", suffix=".tmp", dir=file.parent)
         try:
             with os.fdopen(handle, "wb") as out:
-                np.savez(out, identity=np.str_(identity), patterns=patterns, keys=keys)
+                np.savez(out, identity=np.str_(identity), **dict(zip(_TABLES, tables, strict=True)))
             os.replace(temporary, file)
         except BaseException:
             with contextlib.suppress(OSError):
@@ -270,13 +309,12 @@ def load_database(catalog: StarCatalog, settings: DatabaseSettings) -> PatternDa
     bright = catalog.magnitude <= settings.mag_limit
     hip, unit = catalog.hip[bright], catalog.unit[bright]
     file, identity = _database_file(settings, hip, unit, catalog.epoch)
-    stored = _read_database(file, identity, len(hip))
-    if stored is None:
-        patterns, keys = build_patterns(unit, catalog.magnitude[bright], settings)
-        _write_database(file, identity, patterns, keys)
-    else:
-        patterns, keys = stored
-    return PatternDatabase(settings, hip, unit, patterns, keys, file, stored is not None)
+    tables = _read_database(file, identity, len(hip))
+    from_cache = tables is not None
+    if not from_cache:
+        tables = build_patterns(unit, catalog.magnitude[bright], settings)
+        _write_database(file, identity, tables)
+    return PatternDatabase(settings, hip, catalog.magnitude[bright], unit, *tables, path=file, from_cache=from_cache)
 
 
 def _breadth_first_quads(count: int) -> list[np.ndarray]:
@@ -292,23 +330,26 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
 class LostInSpaceIdentifier:
     """Identification without a prior attitude by Tetra 4-star pattern hashing (see the module docstring).
 
-    ``mag_limit`` (Hp) bounds the database stars; ``pattern_stars_per_region`` is the number of brightest stars per
+    ``mag_limit`` (Hp) bounds the database stars (None: every star of the catalogue given to :meth:`reset`, i.e. the
+    pipeline's onboard catalogue); ``pattern_stars_per_region`` is the number of brightest stars per
     field-sized region that form patterns; ``centroid_noise_px`` (1-sigma, per axis) sets the pattern tolerance;
     ``match_radius_px`` is the verification and labelling radius; ``match_threshold`` the largest accepted
-    probability of a false match; patterns are drawn from the ``max_pattern_stars`` brightest detections.
+    probability of a false match; patterns are drawn from the ``max_pattern_stars`` brightest detections of each head.
+    The first :meth:`reset` for a set of heads and a catalogue builds the database (about a second) and caches it on
+    disk; later ones, in any process, load it in milliseconds.
     """
 
     def __init__(
         self,
-        mag_limit: float = 6.0,
+        mag_limit: float | None = None,
         pattern_stars_per_region: int = 10,
         centroid_noise_px: float = 0.5,
         match_radius_px: float = 3.0,
         match_threshold: float = 1e-5,
         max_pattern_stars: int = 12,
     ):
-        self.mag_limit = checks.in_range("mag_limit", mag_limit, -2.0, 14.0, unit="mag")
-        self.pattern_stars_per_region = checks.integer("pattern_stars_per_region", pattern_stars_per_region, 4, 30)
+        self.mag_limit = None if mag_limit is None else checks.in_range("mag_limit", mag_limit, -2.0, 14.0, unit="mag")
+        self.pattern_stars_per_region = checks.integer("pattern_stars_per_region", pattern_stars_per_region, 4, 12)
         self.centroid_noise_px = checks.in_range("centroid_noise_px", centroid_noise_px, 0.0, 10.0, low_open=True)
         self.match_radius_px = checks.in_range("match_radius_px", match_radius_px, 0.0, 100.0, low_open=True)
         self.match_threshold = checks.in_range("match_threshold", match_threshold, 0.0, 1.0, low_open=True)
@@ -316,53 +357,74 @@ class LostInSpaceIdentifier:
         self._quad_steps = _breadth_first_quads(self.max_pattern_stars)
         self.database: PatternDatabase | None = None
 
-    def settings_for(self, cameras: list[Camera]) -> DatabaseSettings:
-        """Database settings for these heads: the largest head's shorter field side, its coarsest plate scale."""
+    def settings_for(self, cameras: list[Camera], catalog: StarCatalog) -> DatabaseSettings:
+        """Database settings for these heads: the largest head's shorter field side, its coarsest plate scale; the
+        magnitude limit is ``mag_limit`` or, when None, that of the catalogue handed over."""
         if not cameras:
             raise ValueError("cameras must hold at least one Camera")
         pixel_rad = max(1.0 / min(cam.fx, cam.fy) for cam in cameras)
         return DatabaseSettings(
             fov_rad=max(min(cam.fov) for cam in cameras),
-            mag_limit=self.mag_limit,
+            mag_limit=float(catalog.magnitude.max()) if self.mag_limit is None else self.mag_limit,
             edge_tolerance_rad=_N_SIGMA * math.sqrt(2.0) * self.centroid_noise_px * pixel_rad,
             blend_rad=_BLEND_PX * pixel_rad,
+            merge_rad=_MERGE_PX * pixel_rad,
             pattern_stars_per_region=self.pattern_stars_per_region,
         )
 
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
         """Load (or build and cache) the pattern database for these heads and catalogue."""
-        self.database = load_database(catalog, self.settings_for(cameras))
+        self.database = load_database(catalog, self.settings_for(cameras, catalog))
 
     def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None = None) -> list[Stars]:
         """Label all heads' detections with HIP numbers (-1: unidentified); ``prior`` is not used."""
-        ids, _ = self.solve(stars, cameras)
-        return _labelled(stars, ids)
-
-    def solve(self, stars: list[Stars], cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray | None]:
-        """Pooled HIP ids (n,) of all heads' detections (heads in order) and the attitude matrix (inertial -> body)
-        refined on them, or None where no hypothesis verified."""
         if self.database is None:
             raise RuntimeError("call reset(cameras, catalog) before identify")
-        body, heads, _ = _body_vectors(stars, cameras)
+        body, heads = _body_vectors(stars, cameras)
         ids = np.full(len(body), -1, dtype=np.int64)
-        if len(body) < 4:
-            return ids, None
-        radius = np.array([self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras])[heads]
-        boresights = np.stack([cam.mounting.as_matrix()[2] for cam in cameras])
-        flux = np.concatenate([s.flux for s in stars])
-        by_brightness = np.argsort(-flux, kind="stable")[: self.max_pattern_stars]
+        pixel_rad = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])
+        radius, noise = self.match_radius_px * pixel_rad[heads], self.centroid_noise_px * pixel_rad[heads]
+        boresights = np.stack([cam.mounting.as_matrix()[2] for cam in cameras])[np.unique(heads)]
+        first_rows = np.cumsum([0] + [len(s) for s in stars[:-1]])
+        brightest = [  # per head, pooled rows of its brightest detections, brightest first
+            first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
+            for s, first in zip(stars, first_rows, strict=True)
+        ]
         for step in self._quad_steps:
-            quads = step[np.all(step < len(by_brightness), axis=1)]
+            quads = np.concatenate([order[step[np.all(step < len(order), axis=1)]] for order in brightest])
             if len(quads) == 0:
                 break
-            attitude = self._best_hypothesis(body, by_brightness[quads], radius, boresights[np.unique(heads)])
+            attitude = self._best_hypothesis(body, quads, radius, boresights)
             if attitude is not None:
-                matched, rows = self._matches(body, attitude, radius)
-                attitude = _wahba(body[matched], self.database.unit[rows])
-                matched, rows = self._matches(body, attitude, radius)
+                matched, rows = self._grow(body, attitude, radius, noise)
                 ids[matched] = self.database.hip[rows]
-                return ids, attitude
-        return ids, None
+                break
+        return _labelled(stars, ids)
+
+    def _grow(
+        self, body: np.ndarray, attitude: np.ndarray, radius: np.ndarray, noise: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Matches (detections, catalogue rows) of a verified hypothesis ``attitude`` (3, 3), inertial -> body.
+
+        A hypothesis from one head's pattern leaves the roll about that head poorly known, which shifts the stars of
+        other heads by more than the match radius; so matching alternates with refining the attitude, each detection
+        searched within its match radius widened by 3 sigma of its predicted direction under the attitude's
+        covariance (``noise``: each detection's 1-sigma direction noise, rad), up to ``_GROW_MAX`` match radii, until
+        the matches stop changing.  The last matching uses the plain match radius.
+        """
+        matched, rows = self._matches(body, attitude, radius)
+        for _ in range(_GROW_STEPS):
+            attitude = _wahba(body[matched], self.database.unit[rows])
+            b, weight = body[matched], noise[matched] ** -2.0
+            information = weight.sum() * np.eye(3) - np.einsum("n,ni,nj->ij", weight, b, b)
+            covariance = np.linalg.inv(information)  # rad^2, about body axes
+            spread = np.trace(covariance) - np.einsum("ni,ij,nj->n", body, covariance, body)
+            widened = np.minimum(np.sqrt(radius**2 + 9.0 * np.maximum(spread, 0.0)), _GROW_MAX * radius)
+            grown, grown_rows = self._matches(body, attitude, widened)
+            if np.array_equal(grown, matched) and np.array_equal(grown_rows, rows):
+                break
+            matched, rows = grown, grown_rows
+        return self._matches(body, _wahba(body[matched], self.database.unit[rows]), radius)
 
     def _candidates(self, quad_vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(quad, catalogue star rows (k, 4) in the quad's star order) for the catalogue patterns matching the quads."""
@@ -381,7 +443,7 @@ class LostInSpaceIdentifier:
         low = np.clip(np.floor((ratios - ratio_tolerance) * bins).astype(np.int64), 0, bins - 1)
         high = np.clip(np.floor((ratios + ratio_tolerance) * bins).astype(np.int64), 0, bins - 1)
         steps_ok = np.all(_BIN_STEPS[None] <= (high - low)[:, None, :], axis=2)  # (q, 32)
-        keys = (low[:, None, :] + _BIN_STEPS[None]) @ (np.int64(bins) ** np.arange(5, dtype=np.int64))
+        keys = _bins_to_keys(low[:, None, :] + _BIN_STEPS[None], bins)
         owner, step = np.nonzero(steps_ok)
         keys = keys[owner, step]
         first = np.searchsorted(db.keys, keys, side="left")
@@ -389,7 +451,11 @@ class LostInSpaceIdentifier:
         owner = np.repeat(owner, count)
         pattern = np.repeat(first - np.cumsum(count) + count, count) + np.arange(count.sum())
         quad_of = quad_index[owner]
-        catalog_rows = db.patterns[pattern]  # (k, 4)
+        same_scale = np.abs(db.largest_edge[pattern] - largest[quad_of]) <= tolerance
+        quad_of, catalog_rows = quad_of[same_scale], db.patterns[pattern[same_scale]]
+        catalog_ordered = np.sort(_pattern_edges(db.unit[catalog_rows]), axis=1)
+        same_edges = np.all(np.abs(catalog_ordered - ordered[quad_of]) <= tolerance, axis=1)
+        quad_of, catalog_rows = quad_of[same_edges], catalog_rows[same_edges]
         orders = catalog_rows[:, _STAR_ORDERS]  # (k, 24, 4)
         miss = np.max(np.abs(_pattern_edges(db.unit[orders]) - edges[quad_of, None, :]), axis=2)  # (k, 24)
         best = np.argmin(miss, axis=1)
@@ -412,6 +478,8 @@ class LostInSpaceIdentifier:
         field_radius = db.settings.fov_rad / 2.0
         cap = 2.0 * math.pi * (1.0 - math.cos(field_radius))
         for attitude in attitudes[fit]:
+            if best is not None and np.trace(attitude @ best.T) > 3.0 - _SAME_ATTITUDE_TRACE:
+                continue  # the same solution from another pattern
             matched, _ = self._matches(body, attitude, radius)
             m = len(matched)
             if m <= best_count:
@@ -425,7 +493,8 @@ class LostInSpaceIdentifier:
     def _matches(self, body: np.ndarray, attitude: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Detections (rows of ``body``) within ``radius`` of a catalogue star under ``attitude``, and those stars;
         each star keeps only its closest detection."""
-        distance, rows = self.database.tree.query(body @ attitude, distance_upper_bound=float(np.max(radius)))
+        distance, nearest = self.database.tree.query(body @ attitude, distance_upper_bound=float(np.max(radius)))
+        rows = self.database.match_rows[np.minimum(nearest, len(self.database.match_rows) - 1)]
         matched = np.flatnonzero(distance <= radius)
         matched = matched[np.argsort(distance[matched], kind="stable")]
         _, first = np.unique(rows[matched], return_index=True)
@@ -437,8 +506,9 @@ class TrackingIdentifier:
     """Identification from a prior attitude by gated nearest-star pairing; lost in space when that fails.
 
     ``gate_px`` is the first pairing radius, ``refine_gate_px`` the radius after refining the attitude on the first
-    pairs; fewer than ``min_matches`` pairs (or no prior) hands the frame to ``fallback``
-    (default :class:`LostInSpaceIdentifier` with its defaults).  The catalogue is the one given to :meth:`reset`.
+    pairs (both converted to angles with each head's plate scale); fewer than ``min_matches`` pairs (or no prior)
+    hands the frame to ``fallback`` (default :class:`LostInSpaceIdentifier` with its defaults).  The stars are all
+    those of the catalogue given to :meth:`reset` but the fainter of pairs closer than ``_MERGE_PX`` pixels.
     """
 
     def __init__(
@@ -459,7 +529,12 @@ class TrackingIdentifier:
         self.catalog: StarCatalog | None = None
 
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
-        """Keep the catalogue and reset the fallback."""
+        """Index the catalogue's resolvable stars for these heads and reset the fallback."""
+        if not cameras:
+            raise ValueError("cameras must hold at least one Camera")
+        merge_rad = _MERGE_PX * max(1.0 / min(cam.fx, cam.fy) for cam in cameras)
+        self._rows = np.flatnonzero(resolvable(catalog.unit, catalog.magnitude, merge_rad))
+        self._tree = cKDTree(catalog.unit[self._rows])
         self.catalog = catalog
         self.fallback.reset(cameras, catalog)
 
@@ -467,41 +542,42 @@ class TrackingIdentifier:
         """Label all heads' detections with HIP numbers (-1: unidentified), tracking from ``prior`` if it is given."""
         if self.catalog is None:
             raise RuntimeError("call reset(cameras, catalog) before identify")
-        if prior is not None:
-            body, _, _ = _body_vectors(stars, cameras)
+        body, heads = _body_vectors(stars, cameras)
+        if prior is not None and len(body) >= self.min_matches:
+            pixel_rad = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])[heads]
             attitude = prior.as_matrix()
-            detections, rows = self._pairs(stars, cameras, attitude, self.gate_px)
-            if len(rows) >= self.min_matches:
-                attitude = _wahba(body[detections], self.catalog.unit[rows])
-                detections, rows = self._pairs(stars, cameras, attitude, self.refine_gate_px)
-                if len(rows) >= self.min_matches:
+            rows = self._in_view(cameras, attitude)
+            detections, matched_rows = self._pairs(body, rows, attitude, self.gate_px * pixel_rad)
+            if len(detections) >= self.min_matches:
+                attitude = _wahba(body[detections], self.catalog.unit[matched_rows])
+                detections, matched_rows = self._pairs(body, rows, attitude, self.refine_gate_px * pixel_rad)
+                if len(detections) >= self.min_matches:
                     ids = np.full(len(body), -1, dtype=np.int64)
-                    ids[detections] = self.catalog.hip[rows]
+                    ids[detections] = self.catalog.hip[matched_rows]
                     return _labelled(stars, ids)
         return self.fallback.identify(stars, cameras, prior)
 
+    def _in_view(self, cameras: list[Camera], attitude: np.ndarray) -> np.ndarray:
+        """Catalogue rows of the resolvable stars within each head's half diagonal plus the gate of its boresight
+        under ``attitude`` (3, 3), inertial -> body (a cone query per head)."""
+        boresights = np.stack([cam.mounting.as_matrix()[2] @ attitude for cam in cameras])
+        reach = [_chord(cam.half_diagonal + 2.0 * self.gate_px / min(cam.fx, cam.fy)) for cam in cameras]
+        found = self._tree.query_ball_point(boresights, reach)
+        return self._rows[np.unique(np.concatenate([np.asarray(f, dtype=np.intp) for f in found]))]
+
     def _pairs(
-        self, stars: list[Stars], cameras: list[Camera], attitude: np.ndarray, gate_px: float
+        self, body: np.ndarray, rows: np.ndarray, attitude: np.ndarray, gate_rad: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Pooled detection indices and catalogue rows paired within ``gate_px`` under ``attitude`` (3, 3)."""
-        detections, rows, start = [], [], 0
-        for s, cam in zip(stars, cameras, strict=True):
-            if len(s):
-                to_camera = cam.mounting.as_matrix() @ attitude
-                reach = _chord(cam.half_diagonal + 2.0 * gate_px / min(cam.fx, cam.fy))
-                near = np.asarray(self.catalog.tree.query_ball_point(to_camera[2], reach), dtype=np.intp)
-                xy, front = cam.project(self.catalog.unit[near] @ to_camera.T)
-                inside = front & cam.in_frame(xy, gate_px)
-                near, xy = near[inside], xy[inside]
-                distance = np.linalg.norm(s.xy[:, None, :] - xy[None, :, :], axis=2)
-                gated = distance <= gate_px
-                if gated.any():
-                    cost = np.where(gated, distance**2, 4.0 * gate_px**2 * len(s))
-                    det, cat = linear_sum_assignment(cost)
-                    keep = gated[det, cat]
-                    detections.append(start + det[keep])
-                    rows.append(near[cat[keep]])
-            start += len(s)
-        if not rows:
-            return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
-        return np.concatenate(detections), np.concatenate(rows)
+        """Detections (rows of ``body``) and catalogue rows (from ``rows``) paired under ``attitude`` (3, 3): each
+        detection within its ``gate_rad`` of a star, one to one, least total squared distance."""
+        predicted = self.catalog.unit[rows] @ attitude.T  # body frame
+        squared = np.maximum(2.0 - 2.0 * (body @ predicted.T), 0.0)  # squared chord, = squared angle here
+        gated = squared <= gate_rad[:, None] ** 2
+        near_detections, near_stars = np.flatnonzero(gated.any(axis=1)), np.flatnonzero(gated.any(axis=0))
+        near = np.ix_(near_detections, near_stars)
+        gated, squared = gated[near], squared[near]
+        # Pairs outside the gate cost more than any set of gated pairs: the most pairs win, then the closest.
+        outside = (min(gated.shape) + 1) * float(np.max(gate_rad)) ** 2
+        detection, star = linear_sum_assignment(np.where(gated, squared, outside))
+        inside = gated[detection, star]
+        return near_detections[detection[inside]], rows[near_stars[star[inside]]]

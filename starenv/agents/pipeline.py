@@ -75,14 +75,26 @@ def load_agent(spec: Any, role: str, **kwargs) -> Any:
     return agent
 
 
+def onboard_mag_limit(cameras, epoch: float, stars_per_field: float = 10.0) -> float:
+    """The brightest magnitude limit (5.5 to 8.0 in 0.25 steps) whose catalog puts ``stars_per_field`` stars on
+    average in the narrowest head's field: narrow fields need fainter stars to be identifiable."""
+    sky = load_catalog(8.0, epoch)
+    area_sr = min(cam.fov[0] * cam.fov[1] for cam in cameras)  # small-field approximation
+    for limit in np.arange(5.5, 8.0, 0.25):
+        if np.count_nonzero(sky.magnitude <= limit) * area_sr / (4 * np.pi) >= stars_per_field:
+            return float(limit)
+    return 8.0
+
+
 class Pipeline:
     """Predictor, deblurrer, detector, distortion corrector, identifier and solver as one policy.
 
     ``catalog_mag_limit`` is the onboard catalog's magnitude limit (the sensor's own star catalog, separate from the
-    simulator's sky).  ``options`` maps a role to constructor options for agents given as class or string.
+    simulator's sky); None picks :func:`onboard_mag_limit` for the heads.  ``options`` maps a role to constructor
+    options for agents given as class or string.
     """
 
-    def __init__(self, catalog_mag_limit: float = 6.0, options: dict[str, dict] | None = None, **agents):
+    def __init__(self, catalog_mag_limit: float | None = None, options: dict[str, dict] | None = None, **agents):
         unknown = set(agents) - set(ROLES)
         if unknown:
             raise ValueError(f"unknown agent roles {sorted(unknown)}; roles are {', '.join(ROLES)}")
@@ -94,6 +106,7 @@ class Pipeline:
         self.catalog_mag_limit = catalog_mag_limit
         self.catalog = None
         self.cameras = []
+        self.gyro_dt = 0.0
         self.latency_s: dict[str, float] = {}
         self.source = "none"
 
@@ -105,7 +118,10 @@ class Pipeline:
         """Prepare for an episode of ``env`` (a ``StarSensorEnv``, possibly wrapped): cameras, onboard catalog."""
         base = env.unwrapped
         self.cameras = base.cameras
-        self.catalog = load_catalog(self.catalog_mag_limit, base.scenario.epoch)
+        self.gyro_dt = 1.0 / base.scenario.gyro.rate_hz  # the gyro's sample interval, part of its datasheet
+        epoch = base.scenario.epoch
+        limit = self.catalog_mag_limit or onboard_mag_limit(self.cameras, epoch)
+        self.catalog = load_catalog(limit, epoch)
         for role in ("predictor", "identifier"):
             if self.agents[role] is not None:
                 self.agents[role].reset(self.cameras, self.catalog)
@@ -130,7 +146,7 @@ class Pipeline:
             frame_valid=np.asarray(obs["frame_valid"], dtype=bool),
             time_s=float(obs["time_s"]),
             exposure_s=float(obs["exposure_s"]),
-            gyro=GyroRecord(gyro["t"][:n], gyro["rate"][:n], self._gyro_dt(gyro["t"][:n])),
+            gyro=GyroRecord(gyro["t"][:n], gyro["rate"][:n], self.gyro_dt),
             cameras=self.cameras,
         )
         ag = self.agents
@@ -165,9 +181,6 @@ class Pipeline:
             self._timed("predictor", ag["predictor"].update, attitude, carried, step.time_s)
         self.latency_s["pipeline"] = time.perf_counter() - t_start
         return self._action(attitude, identified, prediction)
-
-    def _gyro_dt(self, t: np.ndarray) -> float:
-        return float(np.median(np.diff(t))) if len(t) > 1 else 0.0
 
     def _solve(self, identified: list[Stars]) -> Rotation | None:
         body, inertial = [], []

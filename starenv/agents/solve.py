@@ -97,6 +97,11 @@ def _davenport_parts(profile: np.ndarray) -> tuple[np.ndarray, float, np.ndarray
     return profile + profile.T, float(np.trace(profile)), z
 
 
+def _adjugate_trace(s: np.ndarray) -> float:
+    """Trace of the adjugate of a 3 x 3 matrix: the sum of its principal 2 x 2 minors."""
+    return 0.5 * (np.trace(s) ** 2 - np.trace(s @ s))
+
+
 def _davenport_matrix(profile: np.ndarray) -> np.ndarray:
     """Davenport's symmetric K (4, 4) for the profile matrix B: ``q^T K q = tr(A(q) B^T)``."""
     s, sigma, z = _davenport_parts(profile)
@@ -118,13 +123,6 @@ def _q_method(profile: np.ndarray) -> np.ndarray:
     return vectors[:, -1]
 
 
-def _lambda_max_two(b: np.ndarray, r: np.ndarray, w: np.ndarray) -> float:
-    """Closed-form largest eigenvalue of K for exactly two vector pairs."""
-    cosines = np.dot(b[0], b[1]) * np.dot(r[0], r[1])
-    sines = np.linalg.norm(np.cross(b[0], b[1])) * np.linalg.norm(np.cross(r[0], r[1]))
-    return float(np.sqrt(w[0] ** 2 + w[1] ** 2 + 2.0 * w[0] * w[1] * (cosines + sines)))
-
-
 def _lambda_max_newton(profile: np.ndarray) -> float | None:
     """Largest root of K's characteristic polynomial by Newton's method from ``sum w = 1``; None if not resolved.
 
@@ -136,7 +134,7 @@ def _lambda_max_newton(profile: np.ndarray) -> float | None:
     reaches rounding level; also when the slope turns non-positive or no step falls below NEWTON_TOLERANCE.
     """
     s, sigma, z = _davenport_parts(profile)
-    kappa = 0.5 * (np.trace(s) ** 2 - np.trace(s @ s))  # trace of adj(S)
+    kappa = _adjugate_trace(s)
     a = sigma**2 - kappa
     b = sigma**2 + z @ z
     c = np.linalg.det(s) + z @ s @ z
@@ -164,7 +162,7 @@ def _quest_vector(profile: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
     ``X / gamma``; both vanish when the rotation is 180 deg (the Gibbs vector is infinite there).
     """
     s, sigma, z = _davenport_parts(profile)
-    kappa = 0.5 * (np.trace(s) ** 2 - np.trace(s @ s))
+    kappa = _adjugate_trace(s)
     alpha = lam**2 - sigma**2 + kappa
     beta = lam - sigma
     gamma = (lam + sigma) * alpha - np.linalg.det(s)
@@ -173,30 +171,33 @@ def _quest_vector(profile: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
 
 
 class QuestSolver:
-    """Shuster's QUEST with the method of sequential rotations (Shuster & Oh 1981).
+    """Shuster's QUEST with the method of sequential rotations (Shuster & Oh 1981), guarded by the q-method.
 
-    1. ``lambda_max``: for two vector pairs the closed form; otherwise Newton's method on K's characteristic
-       polynomial from ``sum w`` (weights scaled to sum 1), with a step tolerance and an iteration limit.
+    1. ``lambda_max``: Newton's method on K's characteristic polynomial from ``sum w`` (weights scaled to sum 1).
     2. Sequential rotations: the Gibbs vector ``X / gamma`` is infinite at 180 deg, where X and gamma both vanish
-       and their ratio is lost in rounding.  Rotating the inertial frame by 180 deg about x, y or z (``B -> B R``)
-       swaps the quaternion's scalar part with one of its vector components, so ``gamma = C q4^2`` (C > 0, the
-       same in every frame) is computed in the original frame and the three rotated ones and the frame with the
-       largest gamma (|q4| >= 1/2 there) is used; the rotation is composed back afterwards.
+       and their ratio is lost in rounding (a plain Gibbs-vector QUEST is off by about 2 eps / (pi - angle) rad, and
+       by radians at 180 deg).  Rotating the inertial frame by 180 deg about x, y or z (``B -> B R``) swaps the
+       quaternion's scalar part with one of its vector components; since ``gamma = C q4^2`` with C > 0 the same in
+       every frame, gamma is computed in the original frame and the three rotated ones, the frame with the largest
+       gamma (|q4| >= 1/2 there) is used and the rotation is composed back afterwards.
     3. One Rayleigh-quotient refinement: ``lambda = q^T K q`` of that quaternion, then ``[X, gamma]`` again.  Rounding
-       in the quartic's coefficients puts an error of order eps / gap^2 on the Newton root (gap: distance from
-       lambda_max to the next eigenvalue, small for few stars in a narrow field, or two stars close together); the
-       quaternion inherits error / gap, and the Rayleigh quotient brings it down to order eps / gap, as for the
-       q-method.
-    4. Fallback: if Newton fails (non-positive slope or no step below NEWTON_TOLERANCE within NEWTON_MAX_STEPS:
-       lambda_max nearly degenerate, so the polynomial cannot resolve it), the q-method (``numpy.linalg.eigh``)
-       gives the quaternion instead.
+       in the quartic's coefficients moves the Newton root by about eps / p', where the slope
+       ``p' = prod_j (lambda_max - lambda_j) <= 4 gap`` (gap: lambda_max minus the next eigenvalue, small for two or
+       three stars close together, a narrow field, or weights that leave one star nearly alone); the quaternion
+       inherits that error over the gap (eps / gap^2 in all), and the refinement brings it down to order eps / gap,
+       as for the q-method.
+    4. Fallback to the q-method (``numpy.linalg.eigh``) when the quartic cannot resolve lambda_max: Newton's slope
+       turns non-positive, no step falls below NEWTON_TOLERANCE within NEWTON_MAX_STEPS, or the root's rounding
+       error is too large for step 3 (see :func:`_lambda_max_newton`).  The step size alone does not reveal this:
+       with three stars weighted 1 : 1e-10 : 3e-10 (gap ~5e-10), Newton stops with steps below 1e-12 on roots up to
+       4e-9 off, and the attitudes from them are off by up to 2.9 rad.
     """
 
     def solve(self, body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None = None) -> Rotation:
         """Attitude (inertial -> body) minimising Wahba's loss; see :func:`wahba_inputs` for the checks."""
         b, r, w = wahba_inputs(body, inertial, weights)
         profile = _profile(b, r, w)
-        lam = _lambda_max_two(b, r, w) if len(b) == 2 else _lambda_max_newton(profile)
+        lam = _lambda_max_newton(profile)
         if lam is None:
             return _rotation(_q_method(profile))
         frames = [np.eye(3), *HALF_TURNS]

@@ -1,0 +1,551 @@
+"""Classical star detection and centroiding on one head's frame: :class:`CentroidDetector`.
+
+The pipeline is vectorised (numpy / OpenCV); Python loops run only over the saddles of blobs being split and over
+the iterations of a Gaussian fit made for all stars at once.
+
+1. Local background and noise: a sigma-clipped mean and standard deviation on a grid of tiles, interpolated
+   bilinearly between the tile centres (and extrapolated linearly to the border), so stray-light gradients are
+   followed.  The clipped *mean* is used rather than a median because a median of integer DN moves in whole DN.
+2. Spikes: a pixel standing far above the median of its 3 x 3 neighbourhood, further than a PSF allows (a hot pixel,
+   a cosmic-ray hit or track, alone or on a star), takes that median; so do its neighbours that stand out likewise.
+3. Detection: the cleaned background-subtracted image, smoothed by a Gaussian matched to the PSF (optional), is
+   thresholded at ``threshold_sigma`` times its local noise; 8-connected components of ``min_area_px`` to
+   ``max_area_px`` pixels are the candidates.
+4. Deblending: a blob holding several maxima of the detection image is split, each pixel following its steepest
+   ascent to a maximum; a maximum whose rise above the highest saddle towards a brighter one is below the detection
+   threshold or below ``deblend_contrast`` times its height is merged into that brighter one.
+5. Rejection of what is sharper than the PSF allows (what step 2 left of hot pixels and cosmic rays): the 8
+   neighbours of a blob's peak pixel must hold at least half the light (per unit peak) that a PSF centred on the
+   pixel puts there; and where a blob is bright enough to tell, the pixels beside its ridge (those of at least half
+   the peak), across its principal axis, must hold at least half of what a PSF puts beside its peak (a cosmic-ray
+   track is one pixel wide).
+6. Centroids over the blob grown by ``window_margin_px`` (so faint wings count), in background-subtracted DN:
+   ``"cog"`` the centre of gravity of the positive pixels, ``"iwcog"`` each pixel weighted by its intensity times the
+   matched-filter response, ``"gaussian"`` a pixel-integrated 2-D Gaussian (flux, centre, width) fitted by
+   Levenberg-Marquardt on a square window.  Smeared streaks (elongated blobs) always take the centre of gravity, the
+   flux-weighted trail centroid; saturated blobs are not fitted (the centre of gravity of a clipped symmetric spot is
+   still its centre).
+
+Flux is the sum of background-subtracted DN over the grown blob.  Stars whose grown blob touches the image border are
+cut by it (centroid pulled inwards, flux short) and are left out unless ``keep_edge=True``.  Stars closer than about
+5 PSF sigmas merge into one detection.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from scipy import ndimage
+from scipy.special import erf, ndtr
+
+from starenv import checks
+from starenv.agents.base import Stars
+from starenv.optics import Camera
+
+METHODS = ("cog", "iwcog", "gaussian")
+BACKGROUND_SUBSAMPLE = 3  # every n-th pixel of a tile gives the robust start (median, IQR) of the clipping
+CLIP_ITERATIONS = 3
+SPIKE_MARGIN = 0.75  # a spike's 3 x 3 median is below this fraction of the least a PSF pixel's can be
+SPIKE_SIGMA = 3.0  # significance (noise sigmas) of the excess over the local median that marks a pixel as a spike
+SPIKE_GROW_SIGMA = 1.5  # the same for the neighbours of spikes, on the cleaned image
+MEDIAN_RATIO_FLOOR = 0.01  # PSF pixels below this fraction of the peak are left out of the spike limit
+MEDIAN_NOISE = 0.42  # noise of the median of 9 pixels, in pixel-noise sigmas
+MIN_TILE_KEPT = 0.25  # a tile whose clipping keeps less than this fraction of its pixels takes its neighbour's value
+QUANTISATION_NOISE_DN = 1.0 / math.sqrt(12.0)  # noise floor: the rounding of an integer read-out
+LINE_SIGNIFICANCE = 3.0  # the track test decides only where a star would pass it by this many errors
+PAIR_STEPS = np.array([(1, 0), (1, 1), (0, 1), (-1, 1)])  # pixel steps along 0, 45, 90, 135 deg (x right, y down)
+STREAK_ANISOTROPY_PX2 = 2.0  # blob-mask variance along minus across its axis above which a blob is a streak
+FIT_ITERATIONS = 30  # at most; the fit stops once no centre moves by FIT_TOLERANCE_PX
+FIT_TOLERANCE_PX = 1e-4
+MAX_LABELS = 2**24  # labels are carried in float32 images, exact up to here
+NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+FORWARD_NEIGHBOURS = [(0, 1), (1, -1), (1, 0), (1, 1)]  # each 8-connected pixel pair once
+
+
+def _flag(name: str, value) -> bool:
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def _pixel_fractions(sigma_px: float) -> tuple[float, float]:
+    """Fractions of a 1-D Gaussian (sigma in px) centred on a pixel that fall in that pixel and in one neighbour."""
+    centre = erf(0.5 / (math.sqrt(2.0) * sigma_px))
+    return float(centre), float(0.5 * (erf(1.5 / (math.sqrt(2.0) * sigma_px)) - centre))
+
+
+def _least_median_ratio(sigma_px: float) -> float:
+    """Least ratio of the median of a pixel's 3 x 3 neighbourhood to the pixel's value, over the pixels of a
+    pixel-integrated Gaussian PSF (sigma in px) holding at least MEDIAN_RATIO_FLOOR of its peak, and over the PSF's
+    sub-pixel phase."""
+    reach = math.ceil(4.0 * sigma_px) + 2
+    edges = np.arange(-reach, reach + 2) - 0.5
+    phase = np.linspace(0.0, 0.5, 6)
+    profile = 0.5 * np.diff(erf((edges[None, :] - phase[:, None]) / (math.sqrt(2.0) * sigma_px)), axis=1)
+    least = 1.0
+    for gy in profile:
+        for gx in profile:
+            psf = np.outer(gy, gx)
+            bright = psf >= MEDIAN_RATIO_FLOOR * psf.max()
+            least = min(least, float(np.min(ndimage.median_filter(psf, size=3)[bright] / psf[bright])))
+    return least
+
+
+class CentroidDetector:
+    """Finds stars on an integer frame and centroids them (a :class:`~starenv.agents.base.StarDetector`).
+
+    Options (checked; a bad one raises ``ValueError`` naming it):
+
+    * ``method``: ``"cog"``, ``"iwcog"`` or ``"gaussian"`` (see the module docstring).
+    * ``threshold_sigma``: detection threshold, in noise sigmas of the (smoothed) background-subtracted image.
+    * ``psf_sigma_px``: Gaussian PSF sigma (px) that the matched filter, the sharpness tests and the fit assume.
+    * ``matched_filter``: smooth with the PSF-matched Gaussian before thresholding (finds fainter stars).
+    * ``tile_px``: background tile size (px); smaller follows steeper gradients, larger is less noisy.
+    * ``clip_sigma``: sigma-clipping limit of the background statistics.
+    * ``min_area_px``, ``max_area_px``: accepted blob areas (pixels above the threshold).
+    * ``deblend_contrast``: least rise of a maximum above its saddle, as a fraction of its height, for it to count
+      as a star of its own (together with the detection threshold); 1 turns deblending off.
+    * ``window_margin_px``: growth (px) of each blob for centroid and flux; None: ``ceil(2 psf_sigma_px)``.
+    * ``reject_sharp``: drop blobs sharper than the PSF (hot pixels, cosmic rays).
+    * ``keep_edge``: also report stars cut by the image border.
+    * ``saturation_dn``: pixel value (DN) at and above which a pixel is saturated; None: the image's maximum when it
+      is a full-scale code ``2^n - 1`` (n = 8 .. 16), else none.
+    * ``max_stars``: report at most this many stars (the brightest); None: all.
+    """
+
+    def __init__(
+        self,
+        method: str = "iwcog",
+        threshold_sigma: float = 5.0,
+        psf_sigma_px: float = 1.0,
+        matched_filter: bool = True,
+        tile_px: int = 32,
+        clip_sigma: float = 3.0,
+        min_area_px: int = 2,
+        max_area_px: int = 20000,
+        deblend_contrast: float = 0.2,
+        window_margin_px: int | None = None,
+        reject_sharp: bool = True,
+        keep_edge: bool = False,
+        saturation_dn: int | None = None,
+        max_stars: int | None = None,
+    ):
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+        self.method = method
+        self.threshold_sigma = checks.in_range("threshold_sigma", threshold_sigma, 0.0, 100.0, low_open=True)
+        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.2, 20.0, unit="px")
+        self.matched_filter = _flag("matched_filter", matched_filter)
+        self.tile_px = checks.integer("tile_px", tile_px, 8, 4096)
+        self.clip_sigma = checks.in_range("clip_sigma", clip_sigma, 1.5, 10.0)
+        self.min_area_px = checks.integer("min_area_px", min_area_px, 1, 10**8)
+        self.max_area_px = checks.integer("max_area_px", max_area_px, self.min_area_px, 10**8)
+        self.deblend_contrast = checks.in_range("deblend_contrast", deblend_contrast, 0.0, 1.0, low_open=True)
+        margin = math.ceil(2.0 * self.psf_sigma_px) if window_margin_px is None else window_margin_px
+        self.window_margin_px = checks.integer("window_margin_px", margin, 0, 100)
+        self.reject_sharp = _flag("reject_sharp", reject_sharp)
+        self.keep_edge = _flag("keep_edge", keep_edge)
+        self.saturation_dn = None if saturation_dn is None else checks.integer("saturation_dn", saturation_dn, 1, 65535)
+        self.max_stars = None if max_stars is None else checks.integer("max_stars", max_stars, 1, 10**8)
+
+        # The pixel-integrated PSF has variance sigma^2 + 1/12 px^2 at the pixel centres.
+        self._sigma_eff = math.sqrt(self.psf_sigma_px**2 + 1.0 / 12.0)
+        self._radius_px = math.ceil(3.0 * self._sigma_eff)
+        self._kernel = cv2.getGaussianKernel(2 * self._radius_px + 1, self._sigma_eff, cv2.CV_32F)
+        # Noise of the smoothed image per unit pixel noise: the root of the sum of the 2-D kernel's squares.
+        self._filter_noise = float(np.sum(self._kernel.astype(np.float64) ** 2)) if self.matched_filter else 1.0
+        # Sharpness: light in the 8 neighbours of the peak pixel per unit peak for a PSF centred on the pixel, halved.
+        centre, neighbour = _pixel_fractions(self.psf_sigma_px)
+        self._min_neighbour_ratio = 0.5 * ((centre + 2.0 * neighbour) ** 2 / centre**2 - 1.0)
+        # Spikes: the least ratio of a PSF pixel's 3 x 3 median to its value.
+        self._median_ratio = _least_median_ratio(self.psf_sigma_px)
+        rho = neighbour / centre
+        # Track test: light in the two pixels beside a centred PSF's peak, per unit peak, along PAIR_STEPS.
+        self._pair_ratio = np.array([2.0 * rho, 2.0 * rho**2, 2.0 * rho, 2.0 * rho**2])
+
+    def detect(self, image: np.ndarray, camera: Camera) -> Stars:
+        """Stars on ``image`` (integer DN, shape (camera.height, camera.width)), brightest first: positions (px)
+        and flux (DN above background)."""
+        data = self._checked(image, camera)
+        height, width = data.shape
+        level, noise = self.background(data)
+        resid = data - level
+        removed = self._clean_spikes(resid, noise) if self.reject_sharp else None
+        smooth = cv2.sepFilter2D(resid, cv2.CV_32F, self._kernel, self._kernel, borderType=cv2.BORDER_REFLECT)
+        signal = smooth if self.matched_filter else resid
+        limit = noise * np.float32(self.threshold_sigma * self._filter_noise)
+        above = signal > limit
+        n_label, labels, stats, _ = cv2.connectedComponentsWithStats(above.view(np.uint8), 8, cv2.CV_32S)
+        area = stats[1:, cv2.CC_STAT_AREA]
+        kept = np.flatnonzero((area >= self.min_area_px) & (area <= self.max_area_px)) + 1
+        if len(kept) == 0:
+            return Stars(np.zeros((0, 2)))
+        if len(kept) >= MAX_LABELS:
+            raise ValueError(f"{len(kept)} blobs above the threshold: raise threshold_sigma or min_area_px")
+        lut = np.zeros(n_label, np.float32)
+        lut[kept] = np.arange(1, len(kept) + 1)
+        pixel = np.flatnonzero(above.ravel())
+        core = np.zeros(height * width, np.float32)  # blob labels 1 .. n, 0 elsewhere
+        core[pixel] = lut[labels.ravel()[pixel]]
+        core = core.reshape(height, width)
+        n = self._deblend(core, signal, limit, len(kept)) if self.deblend_contrast < 1.0 else len(kept)
+        grown = core
+        if m := self.window_margin_px:
+            disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
+            grown = cv2.dilate(core, disk)
+            np.copyto(grown, core, where=core > 0)
+        blobs = _Blobs(grown, core, resid, smooth, n)
+
+        good = np.ones(n, bool)
+        if not self.keep_edge:
+            c = blobs.in_core
+            x, y = blobs.x[c], blobs.y[c]
+            touching = (x <= m) | (y <= m) | (x >= width - 1 - m) | (y >= height - 1 - m)
+            good &= np.bincount(blobs.label[c], touching, n) == 0
+        if removed is not None:
+            # What is left of a cosmic-ray track after cleaning: a blob with more light taken off around one of its
+            # pixels (within its growth + 1 px) than it holds.
+            side = 2 * m + 3
+            around = cv2.boxFilter(removed, -1, (side, side), normalize=False, borderType=cv2.BORDER_CONSTANT)
+            lost = np.zeros(n)
+            np.maximum.at(lost, blobs.label[blobs.in_core], around.ravel()[blobs.pixel[blobs.in_core]])
+            good &= self._not_sharp(blobs, resid, noise) & (lost < blobs.flux)
+
+        streak = blobs.mask_anisotropy() > STREAK_ANISOTROPY_PX2
+        xy = blobs.centroid(blobs.positive)
+        if self.method == "iwcog":
+            weighted = ~streak
+            xy[weighted] = blobs.centroid(blobs.positive * np.maximum(blobs.smooth, 0.0))[weighted]
+        elif self.method == "gaussian":
+            saturation = self._saturation(image)
+            saturated = np.zeros(n, bool)
+            if saturation is not None:
+                saturated = np.bincount(blobs.label, image.ravel()[blobs.pixel] >= saturation, n) > 0
+            fit = np.flatnonzero(good & ~streak & ~saturated)
+            xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit])
+        order = np.flatnonzero(good)[np.argsort(-blobs.flux[good], kind="stable")][: self.max_stars]
+        return Stars(xy[order], blobs.flux[order])
+
+    def background(self, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Local background level and noise (DN) of a float32 image, both float32 (H, W): on tiles of about
+        ``tile_px``, the sigma-clipped mean of the pixels and the sigma-clipped standard deviation of differences
+        between neighbouring pixels (over sqrt 2), interpolated bilinearly between the tile centres."""
+        height, width = data.shape
+        ny, nx = max(1, round(height / self.tile_px)), max(1, round(width / self.tile_px))
+        th, tw = -(-height // ny), -(-width // nx)
+        # The last row and column of tiles end at the image border, overlapping the ones before.
+        if ny * th != height or nx * tw != width:
+            rows = np.r_[0 : (ny - 1) * th, height - th : height]
+            cols = np.r_[0 : (nx - 1) * tw, width - tw : width]
+            data = data[np.ix_(rows, cols)]
+        tiles = data.reshape(ny, th, nx, tw)
+        # Level from a checkerboard of pixels (centred on the tile, as a gradient needs); noise from differences of
+        # horizontal neighbours (blind to gradients) on every third row.  Both as (tiles, values) arrays.
+        level_sample = np.concatenate(
+            [tiles[:, i::2, :, i::2].transpose(0, 2, 1, 3).reshape(ny * nx, -1) for i in (0, 1)], axis=1
+        )
+        rows = tiles[:, ::3].transpose(0, 2, 1, 3)
+        centre, _, count = self._clipped_mean_std(level_sample)
+        _, spread, _ = self._clipped_mean_std((rows[..., 1:] - rows[..., :-1]).reshape(ny * nx, -1))
+        scale = np.maximum(spread / math.sqrt(2.0), QUANTISATION_NOISE_DN)
+
+        grid = np.stack([centre, scale], axis=-1).reshape(ny, nx, 2)
+        bad = (count < MIN_TILE_KEPT * level_sample.shape[1]).reshape(ny, nx)
+        if bad.any() and not bad.all():
+            grid = grid[tuple(ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True))]
+        # cv2.resize takes the tile centres to be every th (tw) px from (th - 1) / 2.  The last tile's centre lies
+        # short of that: extrapolate the last row / column linearly to it.  A ring of linearly extrapolated tiles
+        # around the grid carries the gradients out to the image border.
+        for axis, (n, step, size) in enumerate(((ny, th, height), (nx, tw, width))):
+            if n > 1 and n * step > size:
+                last, before = np.take(grid, n - 1, axis=axis), np.take(grid, n - 2, axis=axis)
+                index = [slice(None)] * 3
+                index[axis] = n - 1
+                grid[tuple(index)] = before + (last - before) * (step / (size - (n - 1) * step))
+        grid = np.pad(grid, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd").astype(np.float32)
+        level, noise = (
+            cv2.resize(grid[..., k], ((nx + 2) * tw, (ny + 2) * th), interpolation=cv2.INTER_LINEAR)[
+                th : th + height, tw : tw + width
+            ]
+            for k in (0, 1)
+        )
+        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN))
+
+    def _clipped_mean_std(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mean, standard deviation and count of each row of ``values`` (float32) within +- ``clip_sigma``
+        standard deviations of its mean, iterated from the median and interquartile range of a subsample."""
+        sample = np.sort(values[:, ::BACKGROUND_SUBSAMPLE], axis=1)
+        q25, q50, q75 = (sample[:, (sample.shape[1] - 1) * q // 4] for q in (1, 2, 3))
+        centre = q50.astype(np.float64)
+        scale = np.maximum((q75 - q25) / 1.349, 0.5)
+        # Standard deviation of a unit normal clipped at +- clip_sigma: corrects the spread of the kept values.
+        c = self.clip_sigma
+        truncation = math.sqrt(1.0 - c * math.sqrt(2.0 / math.pi) * math.exp(-0.5 * c * c) / erf(c / math.sqrt(2.0)))
+        dev = np.empty(values.shape, np.float32)
+        inside = np.empty(values.shape, bool)
+        for _ in range(CLIP_ITERATIONS):
+            np.subtract(values, centre.astype(np.float32)[:, None], out=dev)
+            np.less_equal(np.abs(dev), (c * scale).astype(np.float32)[:, None], out=inside)
+            np.multiply(dev, inside, out=dev)
+            count = np.maximum(np.count_nonzero(inside, axis=1), 1)
+            mean_dev = dev.sum(axis=1, dtype=np.float64) / count
+            centre = centre + mean_dev
+            var = np.einsum("ij,ij->i", dev, dev, dtype=np.float64) / count - mean_dev**2
+            scale = np.maximum(np.sqrt(np.maximum(var, 0.0)) / truncation, QUANTISATION_NOISE_DN)
+        return centre, scale, count
+
+    def _checked(self, image, camera: Camera) -> np.ndarray:
+        """The image as float32 DN, after checking it is a 2-D integer array of the camera's size."""
+        if not isinstance(image, np.ndarray) or image.ndim != 2 or not np.issubdtype(image.dtype, np.integer):
+            got = f"a {image.dtype} array of shape {image.shape}" if isinstance(image, np.ndarray) else type(image)
+            raise ValueError(f"image must be a 2-D integer array (DN), got {got}")
+        if image.shape != (camera.height, camera.width):
+            raise ValueError(f"image shape {image.shape} does not match the camera's {(camera.height, camera.width)}")
+        return image.astype(np.float32)
+
+    def _saturation(self, image: np.ndarray) -> int | None:
+        """The saturation level (DN) in force for ``image``; None when no pixel counts as saturated."""
+        if self.saturation_dn is not None:
+            return self.saturation_dn
+        top = int(image.max())
+        return top if top >= 255 and (top + 1) & top == 0 else None
+
+    def _clean_spikes(self, resid: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """Replace, in place, spikes (hot pixels, cosmic-ray hits and tracks, alone or on a star) by the median of
+        their 3 x 3 neighbourhood; return the DN taken off each pixel.
+
+        A spike stands above its median, scaled by SPIKE_MARGIN times the least ratio of median to value that a PSF
+        pixel shows, by SPIKE_SIGMA noise sigmas.  A second pass, on the cleaned image, adds the spikes' neighbours
+        standing out by SPIKE_GROW_SIGMA (a track's ragged edge) and renews every replacement from cleaned
+        neighbourhoods.
+        """
+        original = resid.copy()
+        gain = np.float32(SPIKE_MARGIN * self._median_ratio)
+        unit = noise * np.float32(math.hypot(SPIKE_MARGIN * self._median_ratio, MEDIAN_NOISE))
+
+        def excess(median):
+            """Significance (noise sigmas) of each pixel's excess over what its 3 x 3 median allows."""
+            z = resid * gain
+            z -= median
+            z /= unit
+            return z
+
+        median = cv2.medianBlur(resid, 3)
+        spike = excess(median) > SPIKE_SIGMA
+        resid[spike] = median[spike]
+        median = cv2.medianBlur(resid, 3)
+        near = cv2.dilate(spike.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+        spike |= near & (excess(median) > SPIKE_GROW_SIGMA)
+        resid[spike] = median[spike]
+        return original - resid
+
+    def _deblend(self, core: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int) -> int:
+        """Split blobs of ``core`` (float32 labels 1 .. n, 0 elsewhere) holding several significant maxima of
+        ``signal``; relabels ``core`` in place and returns the new number of blobs."""
+        height, width = core.shape
+        core_flat, value = core.ravel(), signal.ravel()
+        pixel = np.flatnonzero(core_flat > 0)
+        label = core_flat[pixel].astype(np.intp)
+        y, x = np.divmod(pixel, width)
+        # Steepest ascent: each pixel points to its highest 8-neighbour in the same blob (itself if none is higher).
+        best, best_value = pixel.copy(), value[pixel]
+        for dy, dx in NEIGHBOURS:
+            q = np.clip(y + dy, 0, height - 1) * width + np.clip(x + dx, 0, width - 1)
+            v = np.where(core_flat[q] == label, value[q], -np.inf)
+            up = v > best_value
+            best[up], best_value[up] = q[up], v[up]
+        split = np.bincount(label[best == pixel], minlength=n + 1)[label] >= 2
+        if not split.any():
+            return n
+        top = np.searchsorted(pixel, best)  # positions in pixel, which is sorted
+        while not np.array_equal(top[top], top):
+            top = top[top]
+
+        # Saddles: the highest pixel pair (the lower of the two values) joining two basins of a blob being split.
+        pairs = []
+        for dy, dx in FORWARD_NEIGHBOURS:
+            i = np.flatnonzero(split & (y + dy < height) & (x + dx >= 0) & (x + dx < width))
+            q = (y[i] + dy) * width + x[i] + dx
+            i, q = i[core_flat[q] == label[i]], q[core_flat[q] == label[i]]
+            j = np.searchsorted(pixel, q)
+            i, j = i[top[i] != top[j]], j[top[i] != top[j]]
+            pairs.append(np.column_stack([top[i], top[j], np.minimum(value[pixel[i]], value[pixel[j]])]))
+        pairs = np.concatenate(pairs)
+        height_at = value[pixel]
+        rise_needed = np.maximum(limit.ravel()[pixel], self.deblend_contrast * height_at)
+        basin = np.arange(len(pixel))
+
+        def root(k):
+            while basin[k] != k:
+                basin[k] = basin[basin[k]]
+                k = basin[k]
+            return k
+
+        # Highest saddles first: the lower of the two maxima merges into the higher unless it rises enough.
+        for a, b, saddle in pairs[np.argsort(-pairs[:, 2], kind="stable")]:
+            ra, rb = root(int(a)), root(int(b))
+            if ra != rb:
+                low, high = (ra, rb) if height_at[ra] < height_at[rb] else (rb, ra)
+                if height_at[low] - saddle < rise_needed[low]:
+                    basin[low] = high
+        while not np.array_equal(basin[basin], basin):
+            basin = basin[basin]
+        # A new label for each surviving maximum of a split blob; then labels 1 .. n again.
+        label[split] = n + 1 + basin[top[split]]
+        _, compact = np.unique(label, return_inverse=True)
+        core_flat[pixel] = compact + 1
+        return int(compact.max()) + 1
+
+    def _not_sharp(self, blobs: _Blobs, resid: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """Mask of blobs no sharper than the PSF: enough light around the peak, and not a one-pixel-wide track."""
+        height, width = resid.shape
+        py, px = np.divmod(blobs.peak, width)
+        around = np.zeros(len(py), np.float32)
+        for dy, dx in NEIGHBOURS:
+            around += resid[np.clip(py + dy, 0, height - 1), np.clip(px + dx, 0, width - 1)]
+        spread = around >= self._min_neighbour_ratio * resid[py, px]
+
+        # Light beside the ridge (pixels of at least half the peak) across the blob's principal axis, along the
+        # pixel direction nearest the normal: a one-pixel-wide track has none there.
+        lab, w = blobs.label, blobs.positive
+        cx, cy = blobs.centroid(w).T
+        dx, dy = blobs.x - cx[lab], blobs.y - cy[lab]
+        sxx, syy, sxy = (np.bincount(lab, w * a * b, blobs.n) for a, b in ((dx, dx), (dy, dy), (dx, dy)))
+        normal = np.rint((0.5 * np.arctan2(2.0 * sxy, sxx - syy) + 0.5 * np.pi) / (0.25 * np.pi)).astype(int) % 4
+        ridge = np.flatnonzero(blobs.in_core & (blobs.resid >= 0.5 * resid.ravel()[blobs.peak][lab]))
+        rl = lab[ridge]
+        sx, sy = PAIR_STEPS[normal[rl]].T
+        rx, ry = blobs.x[ridge].astype(np.intp), blobs.y[ridge].astype(np.intp)
+        beside = (
+            resid[np.clip(ry + sy, 0, height - 1), np.clip(rx + sx, 0, width - 1)]
+            + resid[np.clip(ry - sy, 0, height - 1), np.clip(rx - sx, 0, width - 1)]
+        )
+        ridge_light = np.bincount(rl, blobs.resid[ridge], blobs.n)
+        ratio = np.bincount(rl, beside, blobs.n) / ridge_light
+        error = np.sqrt(np.bincount(rl, 2.0 * noise.ravel()[blobs.pixel[ridge]].astype(np.float64) ** 2, blobs.n))
+        expected = self._pair_ratio[normal]
+        track = (ratio < 0.5 * expected) & (error / ridge_light < expected / (2.0 * LINE_SIGNIFICANCE))
+        return spread & ~track
+
+    def _fit_gaussians(
+        self, resid: np.ndarray, grown: np.ndarray, which: np.ndarray, start: np.ndarray, flux: np.ndarray
+    ) -> np.ndarray:
+        """Centres (n, 2) px of pixel-integrated Gaussians fitted (Levenberg-Marquardt, all blobs at once) on square
+        windows around ``start``, leaving out pixels off the image or in another blob.  A fit that fails (centre
+        moved by more than a PSF sigma + 1 px, width outside [0.5, 3] PSF sigmas) keeps ``start``."""
+        if len(which) == 0:
+            return start
+        height, width = resid.shape
+        offsets = np.arange(-self._radius_px, self._radius_px + 1)
+        middle = np.rint(start).astype(np.intp)
+        cols, rows = middle[:, 0, None] + offsets, middle[:, 1, None] + offsets  # (n, k)
+        on = ((cols >= 0) & (cols < width))[:, None, :] & ((rows >= 0) & (rows < height))[:, :, None]
+        rr, cc = np.clip(rows, 0, height - 1)[:, :, None], np.clip(cols, 0, width - 1)[:, None, :]
+        owner = grown[rr, cc]
+        weight = (on & ((owner == 0) | (owner == (which + 1)[:, None, None]))).reshape(len(which), -1).astype(float)
+        data = resid[rr, cc].reshape(len(which), -1).astype(np.float64)
+
+        params = np.column_stack(
+            [np.maximum(flux, 1e-3), start - middle, np.full(len(which), math.log(self.psf_sigma_px))]
+        )
+        model, jac = _gaussian_model(params, offsets)
+        res = (data - model) * weight
+        cost = np.einsum("np,np->n", res, res)
+        damping = np.full(len(which), 1e-3)
+        for _ in range(FIT_ITERATIONS):
+            jw_t = (jac * weight[:, :, None]).transpose(0, 2, 1)
+            normal = jw_t @ jw_t.transpose(0, 2, 1)
+            grad = jw_t @ res[:, :, None]
+            diag = np.einsum("nii->ni", normal)
+            step = np.linalg.solve(normal + (damping[:, None] * diag + 1e-12)[:, :, None] * np.eye(4), grad)
+            trial = params + step[..., 0]
+            trial_model, trial_jac = _gaussian_model(trial, offsets)
+            trial_res = (data - trial_model) * weight
+            trial_cost = np.einsum("np,np->n", trial_res, trial_res)
+            better = trial_cost < cost  # False where NaN
+            params[better], res[better], cost[better] = trial[better], trial_res[better], trial_cost[better]
+            jac[better] = trial_jac[better]
+            damping = np.where(better, damping / 3.0, damping * 4.0)
+            if np.all(np.abs(step[:, 1:3, 0]) < FIT_TOLERANCE_PX):
+                break
+        centre = params[:, 1:3] + middle
+        sigma = np.exp(params[:, 3])
+        ok = (
+            (np.hypot(*(centre - start).T) < self._sigma_eff + 1.0)
+            & (sigma > 0.5 * self.psf_sigma_px)
+            & (sigma < 3.0 * self.psf_sigma_px)
+            & (params[:, 0] > 0)
+        )
+        return np.where(ok[:, None], centre, start)
+
+
+def _gaussian_model(params: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-integrated 2-D Gaussians on square windows, and their Jacobians.
+
+    ``params`` (n, 4): flux (DN), centre x and y relative to the window's middle pixel (px), ln(sigma / 1 px);
+    ``offsets`` (k,): pixel offsets of the window's columns and rows.  Returns the model (n, k * k), row-major, and
+    its derivatives (n, k * k, 4).
+    """
+    n, k = len(params), len(offsets)
+    flux, sigma = params[:, :1], np.exp(params[:, 3:])
+
+    def profile(centre):
+        hi = (offsets + 0.5 - centre[:, None]) / sigma
+        lo = (offsets - 0.5 - centre[:, None]) / sigma
+        dens_hi, dens_lo = np.exp(-0.5 * hi * hi), np.exp(-0.5 * lo * lo)
+        d_centre = -(dens_hi - dens_lo) / (math.sqrt(2.0 * math.pi) * sigma)
+        d_log_sigma = -(dens_hi * hi - dens_lo * lo) / math.sqrt(2.0 * math.pi)
+        return ndtr(hi) - ndtr(lo), d_centre, d_log_sigma
+
+    gx, gx_c, gx_s = profile(params[:, 1])
+    gy, gy_c, gy_s = profile(params[:, 2])
+
+    def outer(a, b):
+        return (a[:, :, None] * b[:, None, :]).reshape(n, k * k)
+
+    shape = outer(gy, gx)
+    d_sigma = outer(gy_s, gx) + outer(gy, gx_s)
+    jac = np.stack([shape, flux * outer(gy, gx_c), flux * outer(gy_c, gx), flux * d_sigma], axis=-1)
+    return flux * shape, jac
+
+
+class _Blobs:
+    """The pixels of the grown blobs as flat arrays (blob index, pixel index, x, y, residual and smoothed DN, whether
+    in the un-grown blob), with each blob's flux (DN) and peak pixel (brightest of the un-grown blob)."""
+
+    def __init__(self, grown: np.ndarray, core: np.ndarray, resid: np.ndarray, smooth: np.ndarray, n: int):
+        self.n = n
+        self.pixel = np.flatnonzero(grown.ravel() > 0)
+        self.label = grown.ravel()[self.pixel].astype(np.intp) - 1
+        y, x = np.divmod(self.pixel, grown.shape[1])
+        self.x, self.y = x.astype(np.float64), y.astype(np.float64)
+        self.resid = resid.ravel()[self.pixel].astype(np.float64)
+        self.smooth = smooth.ravel()[self.pixel].astype(np.float64)
+        self.positive = np.maximum(self.resid, 0.0)
+        self.flux = np.bincount(self.label, self.resid, n)
+        self.in_core = core.ravel()[self.pixel] > 0
+        core_label, core_resid = self.label[self.in_core], self.resid[self.in_core]
+        order = np.lexsort((core_resid, core_label))
+        last = np.append(np.flatnonzero(np.diff(core_label[order])), len(order) - 1)
+        self.peak = self.pixel[self.in_core][order[last]]
+
+    def centroid(self, weight: np.ndarray) -> np.ndarray:
+        """Weighted centroids (n, 2) px of the blobs; a blob with no positive weight gets its pixels' mean."""
+        total = np.bincount(self.label, weight, self.n)
+        flat = total <= 0
+        weight = np.where(flat[self.label], 1.0, weight)
+        total = np.where(flat, np.bincount(self.label, minlength=self.n), total)
+        sums = [np.bincount(self.label, weight * c, self.n) for c in (self.x, self.y)]
+        return np.column_stack(sums) / total[:, None]
+
+    def mask_anisotropy(self) -> np.ndarray:
+        """Variance (px^2) of each un-grown blob's pixel mask along its major axis minus that along its minor axis."""
+        lab = self.label[self.in_core]
+        x, y = self.x[self.in_core], self.y[self.in_core]
+        count = np.bincount(lab, minlength=self.n)
+        dx = x - (np.bincount(lab, x, self.n) / count)[lab]
+        dy = y - (np.bincount(lab, y, self.n) / count)[lab]
+        sxx, syy, sxy = (np.bincount(lab, a * b, self.n) / count for a, b in ((dx, dx), (dy, dy), (dx, dy)))
+        return np.hypot(sxx - syy, 2.0 * sxy)

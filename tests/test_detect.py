@@ -1,0 +1,309 @@
+"""CentroidDetector on simulator frames: sub-pixel accuracy, smeared trails and arcs, real-sky frames, stray light,
+hot pixels and cosmic rays, saturation, the image edge, deblending and argument checks."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.distance import cdist
+
+from starenv import scenario
+from starenv.agents.base import StarDetector
+from starenv.agents.detect import CentroidDetector
+from starenv.detector import Detector, DetectorSpec
+from starenv.frames import pointing
+from starenv.motion import ConstantRate, Trajectory
+from starenv.optics import Camera
+from starenv.photometry import Photometry
+from starenv.render import StarRenderer, StarSignal
+from starenv.sensor import StarSensor
+from starenv.sky import StarCatalog
+
+# Seed 000's camera: f = 49 mm, 20 um pixels, here 512 x 512; 10 ms exposure, PSF sigma 0.8 px.
+CAM = Camera.from_focal_length(49e-3, 20e-6, 512, 512)
+EXPOSURE = 0.01
+SIGMA = 0.8
+SKY_E_PER_PX_S = 50.0
+QUIET = DetectorSpec(hot_pixel_fraction=0.0, cosmic_ray_rate_per_cm2_s=0.0)
+METHODS = ("cog", "iwcog", "gaussian")
+GATE_PX = 3.0
+
+
+def render(xy, magnitude, rate=(0.0, 0.0, 0.0)):
+    """Noise-free frame of stars of the given magnitudes imaged at pixel positions ``xy`` (n, 2) at t = 0, the body
+    turning at ``rate`` (rad/s) during the exposure."""
+    a0 = pointing(1.0, 0.3, 0.0)
+    xy = np.atleast_2d(np.asarray(xy, dtype=float))
+    n = len(xy)
+    catalog = StarCatalog(
+        hip=np.arange(1, n + 1),
+        magnitude=np.broadcast_to(np.asarray(magnitude, dtype=float), (n,)).copy(),
+        unit=a0.inv().apply(CAM.unproject(xy)),
+        epoch=2026.0,
+    )
+    renderer = StarRenderer(catalog, CAM, Photometry(aperture_m=0.035), SIGMA)
+    return renderer.render(Trajectory(ConstantRate(np.asarray(rate, dtype=float)), a0), 0.0, EXPOSURE)
+
+
+def read_out(signal, seed, spec=QUIET):
+    """A uint16 frame with the sensor's noise (seeded) for a star signal."""
+    detector = Detector(spec, CAM.width, CAM.height, CAM.pixel_pitch_m, SKY_E_PER_PX_S, np.random.default_rng(seed))
+    return detector.read_out(signal, EXPOSURE, np.random.default_rng(seed + 1000))
+
+
+def expected_dn(signal, spec=QUIET):
+    """The noise-free frame: expected DN, truncated like the sensor's ADC."""
+    return np.floor(signal.image() / spec.gain_e_per_dn + spec.bias_dn).astype(np.uint16)
+
+
+def nearest_px(stars, xy):
+    """Distance (px) from each position in ``xy`` (n, 2) to the nearest detection (inf when there is none)."""
+    if len(stars) == 0:
+        return np.full(len(np.atleast_2d(xy)), np.inf)
+    return cdist(np.atleast_2d(xy), stars.xy).min(axis=1)
+
+
+def test_it_is_a_star_detector():
+    assert isinstance(CentroidDetector(), StarDetector)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(0.0, 1.0), st.floats(0.0, 1.0))
+def test_static_star_lands_on_the_truth_at_any_sub_pixel_phase(phase_x, phase_y):
+    frame = render([200.0 + phase_x, 300.0 + phase_y], 3.0)
+    image = expected_dn(frame.signal)
+    for method in METHODS:
+        stars = CentroidDetector(method=method, psf_sigma_px=SIGMA).detect(image, CAM)
+        assert len(stars) == 1, method
+        assert np.hypot(*(stars.xy[0] - frame.truth.xy_centroid[0])) <= 0.05, method
+
+
+def test_bright_star_with_noise_is_centroided_to_a_few_hundredths_of_a_pixel():
+    rng = np.random.default_rng(7)
+    errors = {m: [] for m in METHODS}
+    for seed in range(12):
+        frame = render(rng.uniform([100.0, 100.0], [400.0, 400.0]), 2.5)
+        image = read_out(frame.signal, seed)
+        for method in METHODS:
+            stars = CentroidDetector(method=method, psf_sigma_px=SIGMA).detect(image, CAM)
+            assert len(stars) == 1, method
+            errors[method].append(np.hypot(*(stars.xy[0] - frame.truth.xy_centroid[0])))
+    for method, e in errors.items():
+        assert np.sqrt(np.mean(np.square(e))) < 0.04, method
+        assert max(e) < 0.1, method
+
+
+def test_gaussian_fit_and_weighted_centroid_beat_plain_centre_of_gravity_on_a_faint_star():
+    rng = np.random.default_rng(11)
+    squared = {m: [] for m in METHODS}
+    for seed in range(30):
+        frame = render(rng.uniform([100.0, 100.0], [400.0, 400.0]), 6.0)  # peak SNR about 8
+        image = read_out(frame.signal, seed)
+        for method in METHODS:
+            miss = nearest_px(CentroidDetector(method=method, psf_sigma_px=SIGMA).detect(image, CAM),
+                              frame.truth.xy_centroid)
+            assert miss[0] < 1.0, method
+            squared[method].append(miss[0] ** 2)
+    rms = {m: math.sqrt(np.mean(v)) for m, v in squared.items()}
+    assert rms["gaussian"] <= rms["cog"]
+    assert rms["iwcog"] <= rms["cog"]
+    assert rms["gaussian"] < 0.25
+
+
+TRAILS = {
+    # 20 px down the rows in 10 ms (rotation about camera X), and 20 px along the diagonal.
+    "rows": ([256.3, 200.7], 0.5, (20.0 / CAM.fx / EXPOSURE, 0.0, 0.0)),
+    "diagonal": ([180.6, 300.2], 0.5, (14.14 / CAM.fx / EXPOSURE, 14.14 / CAM.fx / EXPOSURE, 0.0)),
+    # 0.5 rad about the boresight at 200 px from the principal point: a 100 px arc.
+    "arc": ([CAM.cx + 200.0, CAM.cy + 0.4], -2.0, (0.0, 0.0, 0.5 / EXPOSURE)),
+}
+
+
+@pytest.mark.parametrize("trail", TRAILS)
+def test_smeared_trail_centroid_is_the_trail_centroid(trail):
+    xy, magnitude, rate = TRAILS[trail]
+    frame = render(xy, magnitude, rate)
+    truth = frame.truth.xy_centroid[0]
+    assert np.hypot(*(frame.truth.xy_end[0] - frame.truth.xy_start[0])) > 19.0
+    for method in METHODS:
+        detector = CentroidDetector(method=method, psf_sigma_px=SIGMA)
+        stars = detector.detect(expected_dn(frame.signal), CAM)
+        assert len(stars) == 1, method
+        assert np.hypot(*(stars.xy[0] - truth)) <= 0.1, method
+        for seed in range(3):
+            stars = detector.detect(read_out(frame.signal, seed), CAM)
+            assert len(stars) == 1, method
+            assert np.hypot(*(stars.xy[0] - truth)) <= 0.1, method
+
+
+def score(stars, truth, camera, inner_px=8.0):
+    """Recall of the detectable stars that stand alone (no other star within 4 px: closer pairs blend at this PSF)
+    and clear of the border, precision of the detections (any rendered star within the gate) and the centroid errors
+    of the matched detectable stars."""
+    separation = cdist(truth.xy_centroid, truth.xy_centroid)
+    np.fill_diagonal(separation, np.inf)
+    wanted = truth.detectable & (separation.min(axis=1) > 4.0) & camera.in_frame(truth.xy_centroid, -inner_px)
+    miss = nearest_px(stars, truth.xy_centroid)
+    matched = cdist(stars.xy, truth.xy_centroid).min(axis=1) <= GATE_PX
+    return miss[wanted] <= GATE_PX, matched, miss[wanted & (miss <= GATE_PX)]
+
+
+def test_real_sky_frames_with_hot_pixels_and_cosmic_rays():
+    """Seed 000's sensor over Orion (Hipparcos stars to mag 6), with ten times its hot pixels and a hundred times its
+    cosmic-ray flux (about five hits per frame)."""
+    sc = scenario.load(
+        "paper_000",
+        {"heads.0.detector.hot_pixel_fraction": 5e-4, "heads.0.detector.cosmic_ray_rate_per_cm2_s": 500.0},
+    )
+    sensor = StarSensor(sc)
+    head = sc.heads[0]
+    detector = CentroidDetector(psf_sigma_px=head.psf_sigma_px)
+    found, matched, errors = [], [], []
+    for _ in range(4):
+        frame = sensor.next_frame().heads[0]
+        f, m, e = score(detector.detect(frame.image, head.calibrated), frame.truth, head.camera)
+        found.append(f)
+        matched.append(m)
+        errors.append(e)
+    found, matched, errors = np.concatenate(found), np.concatenate(matched), np.concatenate(errors)
+    assert len(found) > 80
+    assert found.mean() >= 0.95
+    assert matched.mean() >= 0.95
+    assert np.median(errors) < 0.1
+
+
+def test_stray_light_does_not_flood_the_bright_side_with_false_stars():
+    sc = scenario.load("stress_stray_light")
+    sensor = StarSensor(sc)
+    head = sc.heads[0]
+    cam = head.camera
+    towards_glow = np.array([math.cos(math.radians(30.0)), math.sin(math.radians(30.0))])
+    assert head.stray_light.position_angle_deg == 30.0
+    frame = sensor.next_frame().heads[0]
+    stars = CentroidDetector(psf_sigma_px=head.psf_sigma_px).detect(frame.image, head.calibrated)
+    found, matched, _ = score(stars, frame.truth, cam)
+    bright_side = (stars.xy - [cam.cx, cam.cy]) @ towards_glow > 0
+    assert bright_side.sum() >= 10
+    assert matched[bright_side].mean() >= 0.9
+    assert found.mean() >= 0.9
+
+
+def test_hot_pixels_and_cosmic_rays_alone_are_not_stars():
+    spec = DetectorSpec(hot_pixel_fraction=1e-3, cosmic_ray_rate_per_cm2_s=3000.0)  # 260 hot pixels, ~30 hits
+    nothing = StarSignal(np.zeros(0, np.int64), np.zeros(0, np.float32), (CAM.height, CAM.width))
+    for seed in range(3):
+        image = read_out(nothing, seed, spec)
+        assert np.count_nonzero(image > spec.bias_dn + 40) > 50  # the defects are there, and bright
+        assert len(CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)) == 0
+        assert len(CentroidDetector(psf_sigma_px=SIGMA, reject_sharp=False).detect(image, CAM)) > 10
+
+
+def test_a_star_hit_by_a_cosmic_ray_is_still_found_where_it_is():
+    frame = render([250.3, 260.6], 4.0)
+    image = read_out(frame.signal, 3)
+    image[262, 251] += 400  # a hit on the star's wing, brighter than its peak
+    stars = CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)
+    assert len(stars) == 1
+    assert np.hypot(*(stars.xy[0] - frame.truth.xy_centroid[0])) < 0.2
+
+
+def test_saturated_star_is_found_and_centroided():
+    frame = render([300.4, 250.7], -1.0)
+    image = read_out(frame.signal, 5)
+    top = QUIET.max_dn
+    assert np.count_nonzero(image == top) >= 3
+    for method in METHODS:
+        for detector in (CentroidDetector(method=method, psf_sigma_px=SIGMA),
+                         CentroidDetector(method=method, psf_sigma_px=SIGMA, saturation_dn=top)):
+            stars = detector.detect(image, CAM)
+            assert len(stars) == 1, method
+            assert np.hypot(*(stars.xy[0] - frame.truth.xy_centroid[0])) < 0.3, method
+
+
+def test_star_cut_by_the_edge_is_left_out_unless_asked_for():
+    frame = render([[1.5, 250.5], [100.3, 250.5]], 4.0)
+    image = read_out(frame.signal, 2)
+    edge, inner = frame.truth.xy_centroid
+    default = CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)
+    assert len(default) == 1 and np.hypot(*(default.xy[0] - inner)) < 0.2
+    kept = CentroidDetector(psf_sigma_px=SIGMA, keep_edge=True).detect(image, CAM)
+    assert len(kept) == 2
+    assert nearest_px(kept, edge)[0] < 1.0
+
+
+def test_stars_come_brightest_first_and_max_stars_keeps_the_brightest():
+    xy = [[100.2, 100.7], [300.5, 200.1], [400.8, 420.3]]
+    frame = render(xy, [5.0, 3.0, 4.0])
+    image = read_out(frame.signal, 4)
+    stars = CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)
+    assert len(stars) == 3
+    assert np.all(np.diff(stars.flux) < 0)
+    np.testing.assert_allclose(stars.xy, frame.truth.xy_centroid[[1, 2, 0]], atol=0.2)
+    # Flux in DN above background: the star's electrons over the gain, less what falls outside the window.
+    np.testing.assert_allclose(stars.flux, frame.truth.electrons[[1, 2, 0]] / QUIET.gain_e_per_dn, rtol=0.1)
+    top2 = CentroidDetector(psf_sigma_px=SIGMA, max_stars=2).detect(image, CAM)
+    np.testing.assert_array_equal(top2.xy, stars.xy[:2])
+
+
+def test_close_pair_is_split_into_two_stars():
+    xy = np.array([[200.3, 300.6], [204.3, 303.6]])  # 5 px apart
+    frame = render(xy, [4.0, 5.0])
+    image = read_out(frame.signal, 3)
+    stars = CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)
+    assert len(stars) == 2
+    assert np.all(nearest_px(stars, frame.truth.xy_centroid) < 0.15)
+    assert len(CentroidDetector(psf_sigma_px=SIGMA, deblend_contrast=1.0).detect(image, CAM)) == 1
+
+
+def test_background_follows_a_gradient_and_measures_the_noise():
+    rows, cols = np.mgrid[0:CAM.height, 0:CAM.width]
+    level = 300.0 + 0.2 * cols - 0.1 * rows + 2e-4 * (cols - 100.0) ** 2
+    image = np.random.default_rng(0).normal(level, 3.0).astype(np.float32)
+    estimate, noise = CentroidDetector().background(image)
+    assert np.max(np.abs(estimate - level)) < 1.0
+    assert np.median(noise) == pytest.approx(3.0, rel=0.05)
+
+
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [
+        ("method", "moments"),
+        ("threshold_sigma", 0.0),
+        ("threshold_sigma", float("nan")),
+        ("psf_sigma_px", 0.0),
+        ("matched_filter", 1),
+        ("tile_px", 4),
+        ("tile_px", 31.5),
+        ("clip_sigma", 1.0),
+        ("min_area_px", 0),
+        ("max_area_px", 1),
+        ("deblend_contrast", 0.0),
+        ("deblend_contrast", 1.5),
+        ("window_margin_px", -1),
+        ("reject_sharp", "yes"),
+        ("keep_edge", None),
+        ("saturation_dn", 70000),
+        ("max_stars", 0),
+    ],
+)
+def test_bad_options_are_refused_by_name(option, value):
+    kwargs = {"min_area_px": 2} if option == "max_area_px" else {}
+    with pytest.raises(ValueError, match=option):
+        CentroidDetector(**{option: value}, **kwargs)
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((CAM.height, CAM.width, 3), np.uint16),
+        np.zeros((CAM.height, CAM.width), np.float32),
+        np.zeros((CAM.height, CAM.width), bool),
+        np.zeros((CAM.height - 1, CAM.width), np.uint16),
+        [[0] * CAM.width] * CAM.height,
+    ],
+)
+def test_bad_images_are_refused(image):
+    with pytest.raises(ValueError, match="image"):
+        CentroidDetector().detect(image, CAM)

@@ -1,0 +1,420 @@
+"""Tests of star identification: lost in space (Tetra pattern hashing), tracking, pooled heads and the database cache.
+
+Scenes are exact projections of the real catalogue (no images): each star visible on a head becomes a detection with
+Gaussian centroid noise; stars closer than MERGE_PX to a brighter one join its detection, as on a sensor.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from starenv.agents.base import Identifier, Stars
+from starenv.agents.identify import (
+    LostInSpaceIdentifier,
+    TrackingIdentifier,
+    build_patterns,
+    pattern_keys,
+)
+from starenv.frames import DEG
+from starenv.optics import BrownConrady, Camera
+from starenv.sky import load_catalog
+
+EPOCH = 2026.0
+MERGE_PX = 2.0  # scene stars this close to a brighter one are one detection (as the identifiers assume)
+NARROW = Camera.from_focal_length(58.5e-3, 12e-6, 1024, 1024)  # 12 deg
+WIDE = Camera.from_fov(20.0, 1024, 1024, 12e-6)
+SEED_004_MOUNTINGS = (  # body -> camera matrices of three orthogonal heads
+    [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+    [[0, 0, 1], [0, 1, 0], [-1, 0, 0]],
+    [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
+)
+SEED_004_HEADS = [
+    Camera.from_focal_length(39.078e-3, 8e-6, 512, 512, mounting=Rotation.from_matrix(m)) for m in SEED_004_MOUNTINGS
+]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def private_cache_dir(tmp_path_factory):
+    """Keep every database off the user's cache folder."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("STARENV_CACHE_DIR", str(tmp_path_factory.mktemp("starenv-cache")))
+        yield
+
+
+@pytest.fixture(scope="module")
+def catalog():
+    return load_catalog(6.0, EPOCH)
+
+
+def reset_timed(identifier, cameras, catalog) -> float:
+    """Seconds ``identifier.reset`` takes."""
+    start = time.perf_counter()
+    identifier.reset(cameras, catalog)
+    return time.perf_counter() - start
+
+
+@pytest.fixture(scope="module")
+def lost_in_space(catalog):
+    """Identifier and database build time (s) per single-head camera, built once."""
+    built = {}
+    for name, camera in (("narrow", NARROW), ("wide", WIDE)):
+        identifier = LostInSpaceIdentifier()
+        built[name] = identifier, reset_timed(identifier, [camera], catalog)
+    return built
+
+
+@pytest.fixture(scope="module")
+def multi_head():
+    """Lost in space for the seed-004 heads with stars to Hp 6.5 (a 6 deg head sees ~7 to Hp 6.5)."""
+    catalog = load_catalog(6.5, EPOCH)
+    identifier = LostInSpaceIdentifier(mag_limit=6.5)
+    identifier.reset(SEED_004_HEADS, catalog)
+    return identifier, catalog
+
+
+def scene(cameras, catalog, attitude, rng, noise_px=0.3, missing=0.0, false_stars=0):
+    """Per head, the detections (shuffled) and the true HIP number of each (-1: a false star)."""
+    stars, truth = [], []
+    for camera in cameras:
+        to_camera = camera.mounting.as_matrix() @ attitude.as_matrix()
+        near = catalog.cone(to_camera[2], camera.half_diagonal)
+        xy, front = camera.project(catalog.unit[near] @ to_camera.T)
+        inside = front & camera.in_frame(xy)
+        near, xy = near[inside], xy[inside]
+        order = np.argsort(catalog.magnitude[near], kind="stable")
+        near, xy = near[order], xy[order]
+        flux = 1e6 * 10.0 ** (-0.4 * catalog.magnitude[near])
+        owner = np.arange(len(near))
+        for i in range(len(near)):
+            close = np.flatnonzero(np.linalg.norm(xy[:i] - xy[i], axis=1) < MERGE_PX)
+            owner[i] = owner[close[0]] if len(close) else i
+        owners = np.unique(owner)
+        total = np.zeros(len(near))
+        centroid = np.zeros((len(near), 2))
+        np.add.at(total, owner, flux)
+        np.add.at(centroid, owner, flux[:, None] * xy)
+        xy, flux, ids = centroid[owners] / total[owners, None], total[owners], catalog.hip[near[owners]]
+        kept = rng.random(len(ids)) >= missing
+        xy = xy[kept] + rng.normal(0.0, noise_px, (kept.sum(), 2))
+        flux, ids = flux[kept] * rng.uniform(0.9, 1.1, kept.sum()), ids[kept]
+        if false_stars:
+            low, high = (flux.min(), flux.max()) if len(flux) else (1.0, 1e4)
+            xy = np.vstack([xy, rng.uniform(0.0, [camera.width - 1, camera.height - 1], (false_stars, 2))])
+            flux = np.concatenate([flux, np.exp(rng.uniform(np.log(low), np.log(high), false_stars))])
+            ids = np.concatenate([ids, np.full(false_stars, -1)])
+        shuffle = rng.permutation(len(ids))
+        stars.append(Stars(xy[shuffle], flux[shuffle]))
+        truth.append(ids[shuffle])
+    return stars, truth
+
+
+def tally(result: list[Stars], truth: list[np.ndarray]) -> tuple[int, int, int]:
+    """(true stars present, correctly identified, wrongly identified) over all heads."""
+    claimed = np.concatenate([s.catalog_id for s in result])
+    true = np.concatenate(truth)
+    return (
+        int(np.sum(true >= 0)),
+        int(np.sum((claimed == true) & (true >= 0))),
+        int(np.sum((claimed >= 0) & (claimed != true))),
+    )
+
+
+def run_frames(identifier, cameras, catalog, seed, frames=30, prior_error_deg=None, **scene_options):
+    """ID rate (correct / present), false-ID rate (wrong / claimed) and frames with a wrong id over random frames."""
+    rng = np.random.default_rng(seed)
+    present = correct = wrong = bad_frames = 0
+    for _ in range(frames):
+        attitude = Rotation.random(random_state=rng)
+        stars, truth = scene(cameras, catalog, attitude, rng, **scene_options)
+        prior = None
+        if prior_error_deg is not None:
+            axis = rng.normal(size=3)
+            prior = Rotation.from_rotvec(axis / np.linalg.norm(axis) * prior_error_deg * DEG) * attitude
+        p, c, w = tally(identifier.identify(stars, cameras, prior), truth)
+        present, correct, wrong, bad_frames = present + p, correct + c, wrong + w, bad_frames + (w > 0)
+    return correct / present, wrong / max(correct + wrong, 1), bad_frames
+
+
+class CountingIdentifier:
+    """Wraps an identifier and counts its calls."""
+
+    def __init__(self, inner):
+        self.inner, self.calls = inner, 0
+
+    def reset(self, cameras, catalog):
+        self.inner.reset(cameras, catalog)
+
+    def identify(self, stars, cameras, prior):
+        self.calls += 1
+        return self.inner.identify(stars, cameras, prior)
+
+
+def test_identifiers_implement_the_protocol():
+    assert isinstance(LostInSpaceIdentifier(), Identifier)
+    assert isinstance(TrackingIdentifier(), Identifier)
+
+
+@pytest.mark.parametrize("name, camera, seed", [("narrow", NARROW, 1), ("wide", WIDE, 2)])
+def test_lost_in_space_identifies_random_attitudes(lost_in_space, catalog, name, camera, seed):
+    identifier, _ = lost_in_space[name]
+    id_rate, false_rate, _ = run_frames(identifier, [camera], catalog, seed)
+    assert id_rate >= 0.95
+    assert false_rate <= 0.01
+
+
+@pytest.mark.parametrize("name, camera, seed", [("narrow", NARROW, 3), ("wide", WIDE, 4)])
+def test_lost_in_space_with_false_and_missing_stars(lost_in_space, catalog, name, camera, seed):
+    identifier, _ = lost_in_space[name]
+    id_rate, false_rate, bad_frames = run_frames(identifier, [camera], catalog, seed, missing=0.2, false_stars=3)
+    assert id_rate >= 0.90
+    assert false_rate <= 0.02
+    assert bad_frames <= 3
+
+
+def test_lost_in_space_on_a_deep_frame_labels_only_database_stars(lost_in_space):
+    # About 200 detections to Hp 7.6, of which only the stars to Hp 6 are in the database.
+    deep = load_catalog(7.6, EPOCH)
+    identifier, _ = lost_in_space["wide"]
+    rng = np.random.default_rng(5)
+    stars, truth = scene([WIDE], deep, Rotation.random(random_state=rng), rng)
+    assert 150 <= len(stars[0]) <= 250
+    in_database = np.isin(truth[0], identifier.database.hip)
+    claimed = identifier.identify(stars, [WIDE], None)[0].catalog_id
+    assert np.mean(claimed[in_database] == truth[0][in_database]) >= 0.95
+    assert np.sum((claimed >= 0) & (claimed != truth[0])) <= 1
+
+
+def test_lost_in_space_needs_four_stars_and_never_guesses(lost_in_space, catalog):
+    identifier, _ = lost_in_space["narrow"]
+    rng = np.random.default_rng(6)
+    stars, truth = scene([NARROW], catalog, Rotation.random(random_state=rng), rng)
+    brightest = np.argsort(-stars[0].flux)
+    for count in (0, 1, 3):
+        keep = brightest[:count]
+        result = identifier.identify([Stars(stars[0].xy[keep], stars[0].flux[keep])], [NARROW], None)
+        assert np.all(result[0].catalog_id == -1)
+    # Random points are no star field: nothing is identified.
+    noise = Stars(rng.uniform(0, 1023, (40, 2)), rng.uniform(1, 100, 40))
+    assert np.all(identifier.identify([noise], [NARROW], None)[0].catalog_id == -1)
+
+
+def test_a_stricter_match_threshold_needs_more_matched_stars(lost_in_space, catalog):
+    # P(false match) for m of n detections matched is about C(n, m - 2) p^(m - 2), p ~ 4e-4 for the 12 deg camera:
+    # 1e-40 is out of reach for 10 stars but not for 25.
+    strict = LostInSpaceIdentifier(match_threshold=1e-40)
+    strict.reset([NARROW], catalog)
+    default, _ = lost_in_space["narrow"]
+    rng = np.random.default_rng(14)
+    sparse = rich = 0
+    for _ in range(300):
+        stars, truth = scene([NARROW], catalog, Rotation.random(random_state=rng), rng)
+        if 6 <= len(stars[0]) <= 10:
+            assert np.all(strict.identify(stars, [NARROW], None)[0].catalog_id == -1)
+            assert np.array_equal(default.identify(stars, [NARROW], None)[0].catalog_id, truth[0])
+            sparse += 1
+        elif len(stars[0]) >= 25:
+            assert np.array_equal(strict.identify(stars, [NARROW], None)[0].catalog_id, truth[0])
+            rich += 1
+        if min(sparse, rich) >= 3:
+            break
+    assert min(sparse, rich) >= 3
+
+
+def test_a_false_star_next_to_a_star_does_not_take_its_id(lost_in_space, catalog):
+    identifier, _ = lost_in_space["narrow"]
+    tracker = TrackingIdentifier(fallback=identifier)
+    tracker.reset([NARROW], catalog)
+    rng = np.random.default_rng(15)
+    attitude = Rotation.random(random_state=rng)
+    stars, truth = scene([NARROW], catalog, attitude, rng)
+    decoys = stars[0].xy + [2.0, -1.5]  # each star gets a fainter detection 2.5 px away
+    doubled = Stars(np.vstack([stars[0].xy, decoys]), np.concatenate([stars[0].flux, stars[0].flux / 4]))
+    expected = np.concatenate([truth[0], np.full(len(decoys), -1)])
+    assert np.array_equal(identifier.identify([doubled], [NARROW], None)[0].catalog_id, expected)
+    assert np.array_equal(tracker.identify([doubled], [NARROW], attitude)[0].catalog_id, expected)
+
+
+def test_a_distorted_camera_is_identified_through_its_calibration(lost_in_space, catalog):
+    # Barrel distortion of ~10 px at the corners; the database is the undistorted camera's (same field and scale).
+    distorted = replace(NARROW, distortion=BrownConrady(k1=-0.6))
+    identifier = LostInSpaceIdentifier()
+    identifier.reset([distorted], catalog)
+    assert identifier.database.path == lost_in_space["narrow"][0].database.path
+    id_rate, false_rate, _ = run_frames(identifier, [distorted], catalog, seed=16, frames=15)
+    assert id_rate >= 0.95
+    assert false_rate <= 0.01
+    tracker = TrackingIdentifier(fallback=identifier)
+    tracker.reset([distorted], catalog)
+    id_rate, false_rate, _ = run_frames(tracker, [distorted], catalog, seed=17, frames=15, prior_error_deg=0.05)
+    assert id_rate == 1.0
+    assert false_rate == 0.0
+
+
+def test_multi_head_identification(multi_head):
+    identifier, catalog = multi_head
+    id_rate, false_rate, _ = run_frames(identifier, SEED_004_HEADS, catalog, seed=7)
+    assert id_rate >= 0.95
+    assert false_rate <= 0.01
+
+
+def test_multi_head_pools_heads(multi_head):
+    # Heads 1 and 2 keep only three stars each: too few for a pattern, identified through head 0's solution.
+    identifier, catalog = multi_head
+    rng = np.random.default_rng(8)
+    frames = 0
+    for _ in range(100):
+        stars, truth = scene(SEED_004_HEADS, catalog, Rotation.random(random_state=rng), rng)
+        if len(stars[0]) < 8 or min(len(stars[1]), len(stars[2])) < 3:
+            continue
+        for h in (1, 2):
+            keep = rng.choice(len(stars[h]), 3, replace=False)
+            stars[h], truth[h] = Stars(stars[h].xy[keep], stars[h].flux[keep]), truth[h][keep]
+        result = identifier.identify(stars, SEED_004_HEADS, None)
+        for h in range(3):
+            assert np.array_equal(result[h].catalog_id, truth[h])
+        frames += 1
+        if frames == 5:
+            break
+    assert frames == 5
+
+
+def test_tracking_with_a_good_prior_identifies_every_star(lost_in_space, catalog):
+    fallback = CountingIdentifier(lost_in_space["narrow"][0])
+    tracker = TrackingIdentifier(fallback=fallback)
+    tracker.reset([NARROW], catalog)
+    id_rate, false_rate, _ = run_frames(tracker, [NARROW], catalog, seed=9, prior_error_deg=0.05)
+    assert id_rate == 1.0
+    assert false_rate == 0.0
+    assert fallback.calls == 0
+
+
+def test_tracking_keeps_false_stars_unidentified(lost_in_space, catalog):
+    tracker = TrackingIdentifier(fallback=lost_in_space["narrow"][0])
+    tracker.reset([NARROW], catalog)
+    _, false_rate, bad_frames = run_frames(
+        tracker, [NARROW], catalog, seed=10, prior_error_deg=0.02, missing=0.2, false_stars=3
+    )
+    assert false_rate <= 0.01
+    assert bad_frames <= 1
+
+
+@pytest.mark.parametrize("prior_error_deg", [10.0, None])
+def test_tracking_falls_back_to_lost_in_space(lost_in_space, catalog, prior_error_deg):
+    fallback = CountingIdentifier(lost_in_space["narrow"][0])
+    tracker = TrackingIdentifier(fallback=fallback)
+    tracker.reset([NARROW], catalog)
+    id_rate, false_rate, _ = run_frames(tracker, [NARROW], catalog, seed=11, frames=10, prior_error_deg=prior_error_deg)
+    assert fallback.calls == 10
+    assert id_rate >= 0.95
+    assert false_rate <= 0.01
+
+
+def test_tracking_pools_heads(multi_head):
+    identifier, catalog = multi_head
+    tracker = TrackingIdentifier(fallback=identifier)
+    tracker.reset(SEED_004_HEADS, catalog)
+    id_rate, false_rate, _ = run_frames(tracker, SEED_004_HEADS, catalog, seed=12, frames=10, prior_error_deg=0.05)
+    assert id_rate == 1.0
+    assert false_rate == 0.0
+
+
+def test_database_patterns_fit_the_field_and_keys_match(lost_in_space):
+    database = lost_in_space["narrow"][0].database
+    settings = database.settings
+    assert len(database) > 10_000
+    assert np.all(np.diff(database.keys) >= 0)
+    sample = np.random.default_rng(13).choice(len(database), 2000, replace=False)
+    quads = database.unit[database.patterns[sample]]
+    edges = np.sort(np.arccos(np.clip(np.einsum("pik,pjk->pij", quads, quads), -1, 1)).reshape(-1, 16), axis=1)
+    largest = edges[:, -1]
+    assert np.all(largest <= settings.fov_rad + 1e-9)
+    assert np.all(largest >= settings.min_edge_rad - 1e-9)
+    assert np.allclose(database.largest_edge[sample], largest, atol=1e-6)
+    ratios = edges[:, 4::2][:, :5] / largest[:, None]  # each of the six edges appears twice, after four zeros
+    assert np.array_equal(pattern_keys(ratios, settings.bins), database.keys[sample])
+
+
+def test_database_build_is_deterministic(lost_in_space):
+    database = lost_in_space["wide"][0].database
+    patterns, keys, largest_edge = build_patterns(database.unit, database.magnitude, database.settings)
+    assert np.array_equal(patterns, database.patterns)
+    assert np.array_equal(keys, database.keys)
+    assert np.array_equal(largest_edge, database.largest_edge)
+
+
+def test_database_is_loaded_from_the_cache(lost_in_space, catalog):
+    first, build_s = lost_in_space["wide"]
+    assert first.database.path.is_file()
+    assert first.database.path.parent.name == "identify"
+    again = LostInSpaceIdentifier()
+    load_s = reset_timed(again, [WIDE], catalog)
+    assert again.database.from_cache
+    assert again.database.path == first.database.path
+    assert load_s < build_s / 5
+    for name in ("patterns", "keys", "largest_edge", "hip", "unit"):
+        assert np.array_equal(getattr(again.database, name), getattr(first.database, name))
+
+
+def test_changed_options_build_a_new_database(lost_in_space, catalog):
+    first, _ = lost_in_space["wide"]
+    changed = LostInSpaceIdentifier(pattern_stars_per_region=6)
+    changed.reset([WIDE], catalog)
+    assert not changed.database.from_cache
+    assert changed.database.path != first.database.path
+    assert len(changed.database) < len(first.database)
+    other_catalog = LostInSpaceIdentifier(pattern_stars_per_region=6)
+    other_catalog.reset([WIDE], load_catalog(6.0, 2000.0))  # the same stars at another epoch
+    assert not other_catalog.database.from_cache
+    assert other_catalog.database.path != changed.database.path
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated"])
+def test_a_corrupt_database_is_rebuilt(catalog, damage):
+    built = LostInSpaceIdentifier(pattern_stars_per_region=5)
+    built.reset([WIDE], catalog)
+    path = built.database.path
+    path.write_bytes(b"not a database" if damage == "garbage" else path.read_bytes()[: path.stat().st_size // 2])
+    rebuilt = LostInSpaceIdentifier(pattern_stars_per_region=5)
+    rebuilt.reset([WIDE], catalog)
+    assert not rebuilt.database.from_cache
+    assert np.array_equal(rebuilt.database.keys, built.database.keys)
+    reloaded = LostInSpaceIdentifier(pattern_stars_per_region=5)
+    reloaded.reset([WIDE], catalog)
+    assert reloaded.database.from_cache
+
+
+@pytest.mark.parametrize(
+    "factory, option, value",
+    [
+        (LostInSpaceIdentifier, "mag_limit", 20.0),
+        (LostInSpaceIdentifier, "pattern_stars_per_region", 3),
+        (LostInSpaceIdentifier, "pattern_stars_per_region", 13),
+        (LostInSpaceIdentifier, "pattern_stars_per_region", 7.5),
+        (LostInSpaceIdentifier, "centroid_noise_px", 0.0),
+        (LostInSpaceIdentifier, "match_radius_px", -1.0),
+        (LostInSpaceIdentifier, "match_threshold", 0.0),
+        (LostInSpaceIdentifier, "max_pattern_stars", 2),
+        (TrackingIdentifier, "gate_px", float("nan")),
+        (TrackingIdentifier, "refine_gate_px", 50.0),
+        (TrackingIdentifier, "min_matches", 2),
+        (TrackingIdentifier, "fallback", "lost"),
+    ],
+)
+def test_bad_options_are_refused(factory, option, value):
+    with pytest.raises(ValueError, match=option):
+        factory(**{option: value})
+
+
+def test_identify_needs_reset_and_one_stars_per_head(lost_in_space):
+    with pytest.raises(RuntimeError, match="reset"):
+        LostInSpaceIdentifier().identify([Stars(np.zeros((5, 2)))], [NARROW], None)
+    with pytest.raises(RuntimeError, match="reset"):
+        TrackingIdentifier().identify([Stars(np.zeros((5, 2)))], [NARROW], Rotation.identity())
+    identifier, _ = lost_in_space["narrow"]
+    with pytest.raises(ValueError, match="one Stars per camera"):
+        identifier.identify([Stars(np.zeros((5, 2)))] * 2, [NARROW], None)

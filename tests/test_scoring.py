@@ -1,0 +1,57 @@
+"""Scores against hand-made truth: matching, identification rules, attitude error split, aggregation."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from starenv.frames import ARCSEC
+from starenv.render import StarTruth
+from starenv.scoring import attitude_error, score_stars, summarize
+
+
+def truth(xy, ids, detectable=None):
+    xy = np.asarray(xy, dtype=float)
+    n = len(xy)
+    return StarTruth(
+        catalog_id=np.asarray(ids), magnitude=np.full(n, 5.0), xy_mid=xy, xy_centroid=xy, xy_start=xy, xy_end=xy,
+        electrons=np.full(n, 1e4), peak_electrons=np.full(n, 1e3),
+        detectable=np.ones(n, bool) if detectable is None else np.asarray(detectable),
+    )
+
+
+def test_either_member_of_an_unresolved_double_is_a_correct_id():
+    t = truth([[100.0, 100.0], [100.6, 100.0], [300.0, 50.0], [40.0, 400.0]], [11, 12, 13, 14])
+    blend = np.array([[100.3, 100.0], [300.0, 50.0], [40.0, 400.0]])
+    for label in (11, 12):
+        s = score_stars(t, blend, np.array([label, 13, 14]))
+        assert (s.ids_correct, s.ids_wrong, s.solved) == (3, 0, True)
+    s = score_stars(t, blend, np.array([13, 13, 14]))  # star 13 is 200 px away from the blend
+    assert (s.ids_correct, s.ids_wrong, s.solved) == (2, 1, False)
+    assert s.false_id_rate == pytest.approx(1 / 3)
+    assert s.id_rate == pytest.approx(2 / 4)
+
+
+def test_matching_is_one_to_one_within_the_gate():
+    t = truth([[10.0, 10.0], [20.0, 10.0]], [1, 2], detectable=[True, False])
+    det = np.array([[10.5, 10.0], [10.4, 10.0], [50.0, 50.0]])  # two detections compete for star 1; one is noise
+    s = score_stars(t, det)
+    assert s.centroid_error_px_mean == pytest.approx(0.4)  # the nearer one wins
+    assert s.detection_precision == pytest.approx(1 / 3)
+    assert s.detection_recall == 1.0  # the only detectable star was found
+
+
+def test_attitude_error_splits_into_cross_boresight_and_roll_per_head():
+    true = Rotation.from_euler("xyz", [10, 20, 30], degrees=True)
+    heads = [Rotation.identity(), Rotation.from_matrix([[0, 0, 1], [0, 1, 0], [-1, 0, 0.0]])]
+    est = Rotation.from_rotvec([0.0, 0.0, 20 * ARCSEC]) * true  # 20 arcsec about body +Z
+    e = attitude_error(est, true, heads)
+    assert e["total_arcsec"] == pytest.approx(20.0, rel=1e-9)
+    assert e["heads"][0]["roll_arcsec"] == pytest.approx(20.0) and e["heads"][0]["cross_boresight_arcsec"] < 1e-9
+    assert e["heads"][1]["cross_boresight_arcsec"] == pytest.approx(20.0) and e["heads"][1]["roll_arcsec"] < 1e-9
+
+
+def test_summary_takes_median_and_p95_over_steps_with_a_value():
+    records = [{"frame": i, "x": float(i), "y": None if i % 2 else 1.0} for i in range(101)]
+    out = summarize(records)
+    assert out["x"]["median"] == 50.0 and out["x"]["p95"] == pytest.approx(95.0) and out["x"]["count"] == 101
+    assert out["y"]["count"] == 51 and "frame" not in out

@@ -177,18 +177,19 @@ class CentroidDetector:
         signal = smooth if self.matched_filter else resid
         limit = noise * np.float32(self.threshold_sigma * self._filter_noise)
         above = signal > limit
-        n_label, labels, stats, _ = cv2.connectedComponentsWithStats(above.view(np.uint8), 8, cv2.CV_32S)
-        area = stats[1:, cv2.CC_STAT_AREA]
-        kept = np.flatnonzero((area >= self.min_area_px) & (area <= self.max_area_px)) + 1
+        n_label, labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+        pixel = np.flatnonzero(above.ravel())
+        component = labels.ravel()[pixel]
+        area = np.bincount(component, minlength=n_label)
+        kept = np.flatnonzero((area[1:] >= self.min_area_px) & (area[1:] <= self.max_area_px)) + 1
         if len(kept) == 0:
             return Stars(np.zeros((0, 2)))
         if len(kept) >= MAX_LABELS:
             raise ValueError(f"{len(kept)} blobs above the threshold: raise threshold_sigma or min_area_px")
         lut = np.zeros(n_label, np.float32)
         lut[kept] = np.arange(1, len(kept) + 1)
-        pixel = np.flatnonzero(above.ravel())
         core = np.zeros(height * width, np.float32)  # blob labels 1 .. n, 0 elsewhere
-        core[pixel] = lut[labels.ravel()[pixel]]
+        core[pixel] = lut[component]
         core = core.reshape(height, width)
         n = self._deblend(core, signal, limit, len(kept)) if self.deblend_contrast < 1.0 else len(kept)
         grown = core
@@ -204,14 +205,8 @@ class CentroidDetector:
             x, y = blobs.x[c], blobs.y[c]
             touching = (x <= m) | (y <= m) | (x >= width - 1 - m) | (y >= height - 1 - m)
             good &= np.bincount(blobs.label[c], touching, n) == 0
-        if removed is not None:
-            # What is left of a cosmic-ray track after cleaning: a blob with more light taken off around one of its
-            # pixels (within its growth + 1 px) than it holds.
-            side = 2 * m + 3
-            around = cv2.boxFilter(removed, -1, (side, side), normalize=False, borderType=cv2.BORDER_CONSTANT)
-            lost = np.zeros(n)
-            np.maximum.at(lost, blobs.label[blobs.in_core], around.ravel()[blobs.pixel[blobs.in_core]])
-            good &= self._not_sharp(blobs, resid, noise) & (lost < blobs.flux)
+        if self.reject_sharp:
+            good &= self._not_sharp(blobs, resid, noise) & ~self._track_remnant(blobs, removed, m)
 
         streak = blobs.mask_anisotropy() > STREAK_ANISOTROPY_PX2
         xy = blobs.centroid(blobs.positive)
@@ -266,12 +261,14 @@ class CentroidDetector:
                 grid[tuple(index)] = before + (last - before) * (step / (size - (n - 1) * step))
         grid = np.pad(grid, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd").astype(np.float32)
         level, noise = (
-            cv2.resize(grid[..., k], ((nx + 2) * tw, (ny + 2) * th), interpolation=cv2.INTER_LINEAR)[
-                th : th + height, tw : tw + width
-            ]
+            np.ascontiguousarray(
+                cv2.resize(grid[..., k], ((nx + 2) * tw, (ny + 2) * th), interpolation=cv2.INTER_LINEAR)[
+                    th : th + height, tw : tw + width
+                ]
+            )
             for k in (0, 1)
         )
-        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN))
+        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN), out=noise)
 
     def _clipped_mean_std(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Mean, standard deviation and count of each row of ``values`` (float32) within +- ``clip_sigma``
@@ -397,6 +394,15 @@ class CentroidDetector:
         _, compact = np.unique(label, return_inverse=True)
         core_flat[pixel] = compact + 1
         return int(compact.max()) + 1
+
+    def _track_remnant(self, blobs: _Blobs, removed: np.ndarray, margin_px: int) -> np.ndarray:
+        """Mask of blobs that are what is left of a cosmic-ray track after cleaning: more light was taken off
+        around one of their pixels (within their growth + 1 px) than they hold."""
+        side = 2 * margin_px + 3
+        around = cv2.boxFilter(removed, -1, (side, side), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        lost = np.zeros(blobs.n)
+        np.maximum.at(lost, blobs.label[blobs.in_core], around.ravel()[blobs.pixel[blobs.in_core]])
+        return lost >= blobs.flux
 
     def _not_sharp(self, blobs: _Blobs, resid: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """Mask of blobs no sharper than the PSF: enough light around the peak, and not a one-pixel-wide track."""

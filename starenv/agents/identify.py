@@ -73,6 +73,7 @@ from starenv.sky import StarCatalog, cache_dir
 METHOD_VERSION = 1  # bump when the database layout or its construction changes
 _N_SIGMA = 3.0  # edge tolerance in standard deviations of an edge's angle
 _BLEND_PX = 8.0  # stars closer than this (px, coarsest head) are not used in patterns
+PATTERN_STARS_PER_FIELD = 20.0  # default database depth: stars on average in the narrowest head's field
 _MERGE_PX = 2.0  # a star closer than this (px, coarsest head) to a brighter one is taken as part of it
 _MIN_EDGE_FRACTION = 0.25  # smallest largest-edge of a pattern, as a fraction of the field
 _LATTICE_SPACING_FRACTION = 0.25  # spacing of the pattern-region centres, as a fraction of the field
@@ -327,12 +328,23 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
     return steps
 
 
+def field_mag_limit(cameras: list[Camera], magnitudes: np.ndarray, stars_per_field: float = 10.0) -> float:
+    """The brightest magnitude limit, in 0.25 mag steps up to the faintest of ``magnitudes`` (a full-sky catalog),
+    that puts ``stars_per_field`` stars on average in the narrowest head's field: narrow fields need fainter stars."""
+    area_sr = min(cam.fov[0] * cam.fov[1] for cam in cameras)  # small-field approximation
+    faintest = float(np.max(magnitudes))
+    for limit in np.arange(-1.0, faintest, 0.25):
+        if np.count_nonzero(magnitudes <= limit) * area_sr / (4 * np.pi) >= stars_per_field:
+            return float(limit)
+    return faintest
+
+
 class LostInSpaceIdentifier:
     """Identification without a prior attitude by Tetra 4-star pattern hashing (see the module docstring).
 
-    ``mag_limit`` (Hp) bounds the database stars (None: every star of the catalogue given to :meth:`reset`, i.e. the
-    pipeline's onboard catalogue); ``pattern_stars_per_region`` is the number of brightest stars per
-    field-sized region that form patterns; ``centroid_noise_px`` (1-sigma, per axis) sets the pattern tolerance;
+    ``mag_limit`` (Hp) bounds the database stars (None: :func:`field_mag_limit` of the catalogue given to
+    :meth:`reset` for ``PATTERN_STARS_PER_FIELD`` stars per field); ``pattern_stars_per_region`` is the number of
+    brightest stars per field-sized region that form patterns; ``centroid_noise_px`` (1-sigma, per axis) sets the pattern tolerance;
     ``match_radius_px`` is the verification and labelling radius; ``match_threshold`` the largest accepted
     probability of a false match; patterns are drawn from the ``max_pattern_stars`` brightest detections of each head.
     The first :meth:`reset` for a set of heads and a catalogue builds the database (about a second) and caches it on
@@ -359,13 +371,15 @@ class LostInSpaceIdentifier:
 
     def settings_for(self, cameras: list[Camera], catalog: StarCatalog) -> DatabaseSettings:
         """Database settings for these heads: the largest head's shorter field side, its coarsest plate scale; the
-        magnitude limit is ``mag_limit`` or, when None, that of the catalogue handed over."""
+        magnitude limit is ``mag_limit`` or, when None, :func:`field_mag_limit` of the catalogue handed over."""
         if not cameras:
             raise ValueError("cameras must hold at least one Camera")
         pixel_rad = max(1.0 / min(cam.fx, cam.fy) for cam in cameras)
         return DatabaseSettings(
             fov_rad=max(min(cam.fov) for cam in cameras),
-            mag_limit=float(catalog.magnitude.max()) if self.mag_limit is None else self.mag_limit,
+            mag_limit=field_mag_limit(cameras, catalog.magnitude, PATTERN_STARS_PER_FIELD)
+            if self.mag_limit is None
+            else self.mag_limit,
             edge_tolerance_rad=_N_SIGMA * math.sqrt(2.0) * self.centroid_noise_px * pixel_rad,
             blend_rad=_BLEND_PX * pixel_rad,
             merge_rad=_MERGE_PX * pixel_rad,
@@ -373,8 +387,13 @@ class LostInSpaceIdentifier:
         )
 
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
-        """Load (or build and cache) the pattern database for these heads and catalogue."""
-        self.database = load_database(catalog, self.settings_for(cameras, catalog))
+        """Load (or build and cache) the pattern database for these heads and catalogue, and index the whole
+        catalogue's resolvable stars: a verified attitude labels detections from all of it, not only the (brighter)
+        pattern stars."""
+        settings = self.settings_for(cameras, catalog)
+        self.database = load_database(catalog, settings)
+        rows = np.flatnonzero(resolvable(catalog.unit, catalog.magnitude, settings.merge_rad))
+        self._label_tree, self._label_hip = cKDTree(catalog.unit[rows]), catalog.hip[rows]
 
     def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None = None) -> list[Stars]:
         """Label all heads' detections with HIP numbers (-1: unidentified); ``prior`` is not used."""
@@ -397,7 +416,9 @@ class LostInSpaceIdentifier:
             attitude = self._best_hypothesis(body, quads, radius, boresights)
             if attitude is not None:
                 matched, rows = self._grow(body, attitude, radius, noise)
-                ids[matched] = self.database.hip[rows]
+                refined = _wahba(body[matched], self.database.unit[rows])
+                labelled, stars_hit = _closest_pairs(self._label_tree, body @ refined, radius)
+                ids[labelled] = self._label_hip[stars_hit]
                 break
         return _labelled(stars, ids)
 
@@ -491,15 +512,21 @@ class LostInSpaceIdentifier:
         return best
 
     def _matches(self, body: np.ndarray, attitude: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Detections (rows of ``body``) within ``radius`` of a catalogue star under ``attitude``, and those stars;
-        each star keeps only its closest detection."""
-        distance, nearest = self.database.tree.query(body @ attitude, distance_upper_bound=float(np.max(radius)))
-        rows = self.database.match_rows[np.minimum(nearest, len(self.database.match_rows) - 1)]
-        matched = np.flatnonzero(distance <= radius)
-        matched = matched[np.argsort(distance[matched], kind="stable")]
-        _, first = np.unique(rows[matched], return_index=True)
-        matched = np.sort(matched[first])
-        return matched, rows[matched]
+        """Detections (rows of ``body``) within ``radius`` of a database star under ``attitude``, and those stars'
+        catalogue rows; each star keeps only its closest detection."""
+        matched, nearest = _closest_pairs(self.database.tree, body @ attitude, radius)
+        return matched, self.database.match_rows[nearest]
+
+
+def _closest_pairs(tree: cKDTree, directions: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``directions`` (inertial unit vectors) within ``radius`` (rad, per row) of a point of ``tree``, and
+    those points' indices; a point paired with several rows keeps only the closest."""
+    distance, nearest = tree.query(directions, distance_upper_bound=float(np.max(radius)))
+    matched = np.flatnonzero(distance <= radius)
+    matched = matched[np.argsort(distance[matched], kind="stable")]
+    _, first = np.unique(nearest[matched], return_index=True)
+    matched = np.sort(matched[first])
+    return matched, nearest[matched]
 
 
 class TrackingIdentifier:

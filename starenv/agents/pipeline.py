@@ -32,9 +32,11 @@ from starenv.agents.base import (
     Stars,
     StepInput,
 )
+from starenv.agents.identify import field_mag_limit
 from starenv.env import MAX_STARS
 from starenv.sky import load_catalog
 
+ONBOARD_MAX_MAG = 7.5
 ROLES = {
     "predictor": Predictor,
     "deblurrer": Deblurrer,
@@ -75,23 +77,13 @@ def load_agent(spec: Any, role: str, **kwargs) -> Any:
     return agent
 
 
-def onboard_mag_limit(cameras, epoch: float, stars_per_field: float = 10.0) -> float:
-    """The brightest magnitude limit (5.5 to 8.0 in 0.25 steps) whose catalog puts ``stars_per_field`` stars on
-    average in the narrowest head's field: narrow fields need fainter stars to be identifiable."""
-    sky = load_catalog(8.0, epoch)
-    area_sr = min(cam.fov[0] * cam.fov[1] for cam in cameras)  # small-field approximation
-    for limit in np.arange(5.5, 8.0, 0.25):
-        if np.count_nonzero(sky.magnitude <= limit) * area_sr / (4 * np.pi) >= stars_per_field:
-            return float(limit)
-    return 8.0
-
-
 class Pipeline:
     """Predictor, deblurrer, detector, distortion corrector, identifier and solver as one policy.
 
     ``catalog_mag_limit`` is the onboard catalog's magnitude limit (the sensor's own star catalog, separate from the
-    simulator's sky); None picks :func:`onboard_mag_limit` for the heads.  ``options`` maps a role to constructor
-    options for agents given as class or string.
+    simulator's sky); None picks the limit that puts ~30 stars in the narrowest head's field (at most Hp 7.5): deep
+    enough for tracking, while the lost-in-space database takes its own brighter cut.  ``options`` maps a role to
+    constructor options for agents given as class or string.
     """
 
     def __init__(self, catalog_mag_limit: float | None = None, options: dict[str, dict] | None = None, **agents):
@@ -120,7 +112,9 @@ class Pipeline:
         self.cameras = base.cameras
         self.gyro_dt = 1.0 / base.scenario.gyro.rate_hz  # the gyro's sample interval, part of its datasheet
         epoch = base.scenario.epoch
-        limit = self.catalog_mag_limit or onboard_mag_limit(self.cameras, epoch)
+        limit = self.catalog_mag_limit
+        if limit is None:
+            limit = min(field_mag_limit(self.cameras, load_catalog(8.0, epoch).magnitude, 30.0), ONBOARD_MAX_MAG)
         self.catalog = load_catalog(limit, epoch)
         for role in ("predictor", "identifier"):
             if self.agents[role] is not None:

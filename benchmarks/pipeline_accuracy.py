@@ -51,7 +51,8 @@ def main() -> None:
                                  ("tracking", "starenv.agents.identify:TrackingIdentifier")):
             s, _ = run("paper_002", overrides, Pipeline(identifier=identifier), args.frames)
             err = s.get("attitude_error_arcsec", {}).get("median", float("nan"))
-            print(f"{rate:10.1f} | {name:>14} | {s['solved']['mean']:6.2f} | {s.get('id_rate', {}).get('mean', 0):7.3f} "
+            id_rate = s.get("id_rate", {}).get("mean", 0.0)
+            print(f"{rate:10.1f} | {name:>14} | {s['solved']['mean']:6.2f} | {id_rate:7.3f} "
                   f"| {err:12.2f} as | {s['latency_identifier_ms']['median']:11.3f}")
 
     _, heads = run("paper_000", {"lost_after_steps": 10**6}, Pipeline(), max(args.frames, 200))

@@ -46,7 +46,7 @@ from starenv.optics import Camera
 
 METHODS = ("cog", "iwcog", "gaussian")
 BACKGROUND_SUBSAMPLE = 3  # every n-th pixel of a tile gives the robust start (median, IQR) of the clipping
-CLIP_ITERATIONS = 3
+CLIP_ITERATIONS = 2
 SPIKE_MARGIN = 0.75  # a spike's 3 x 3 median is below this fraction of the least a PSF pixel's can be
 SPIKE_SIGMA = 3.0  # significance (noise sigmas) of the excess over the local median that marks a pixel as a spike
 SPIKE_GROW_SIGMA = 1.5  # the same for the neighbours of spikes, on the cleaned image

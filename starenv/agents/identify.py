@@ -344,11 +344,11 @@ class LostInSpaceIdentifier:
 
     ``mag_limit`` (Hp) bounds the database stars (None: :func:`field_mag_limit` of the catalogue given to
     :meth:`reset` for ``PATTERN_STARS_PER_FIELD`` stars per field); ``pattern_stars_per_region`` is the number of
-    brightest stars per field-sized region that form patterns; ``centroid_noise_px`` (1-sigma, per axis) sets the pattern tolerance;
-    ``match_radius_px`` is the verification and labelling radius; ``match_threshold`` the largest accepted
-    probability of a false match; patterns are drawn from the ``max_pattern_stars`` brightest detections of each head.
-    The first :meth:`reset` for a set of heads and a catalogue builds the database (about a second) and caches it on
-    disk; later ones, in any process, load it in milliseconds.
+    brightest stars per field-sized region that form patterns; ``centroid_noise_px`` (1-sigma, per axis) sets the
+    pattern tolerance; ``match_radius_px`` is the verification and labelling radius; ``match_threshold`` the largest
+    accepted probability of a false match; patterns are drawn from the ``max_pattern_stars`` brightest detections of
+    each head. The first :meth:`reset` for a set of heads and a catalogue builds the database (about a second) and
+    caches it on disk; later ones, in any process, load it in milliseconds.
     """
 
     def __init__(

@@ -1,0 +1,232 @@
+"""Peer comparison of star identification on identical centroid sets: starenv's lost-in-space and tracking
+identifiers beside cedar-solve 0.5.1 and tetra3rs 0.14.0.
+
+Goals: lost-in-space per-star ID rate >= cedar-solve's; median lost-in-space latency <= 2x tetra3rs's; tracking
+<= 1 ms for 30 stars.
+
+Sets: random attitudes (uniform on the sky, uniform roll) of one camera (default seed 002's 1024 x 1024 px, f 58.5 mm,
+12 um, 12 deg field; ``--fov 20`` a 20 deg one with the same sensor), the stars of the Hipparcos-2 catalogue down to
+``--mag-limit`` (default 6.5 at 12 deg, as seed 002's scenario, and 5.5 at 20 deg: a median of about 20 stars a set)
+at epoch 2025.0, projected by the ideal pinhole; a star within ``BLEND_PX`` of a brighter one is dropped (the sensor
+sees one spot), 0.3 px Gaussian noise is added to each coordinate, stars off the sensor are dropped, the rest are
+ordered brightest first.  Every method solves the same sets; the peers run in their own virtual environment
+(``.peers-venv`` in the repository root, made on the first run; they pin numpy < 2) through
+``benchmarks/peers/run_peers.py``, which also checks their pixel conventions on noise-free copies of the first sets.
+
+Scores, over all sets: per-star ID rate = correctly labelled centroids / all centroids; false-ID rate = wrongly
+labelled centroids / all centroids.  starenv's labels are HIP numbers, right when they are the true star's; a peer's
+label (its own catalogue) is right when the matched catalogue direction is within ``ID_TOLERANCE_ARCSEC`` of the
+true star's.  A set is solved by starenv with >= 3 correct labels and none wrong; by a peer when its attitude puts the
+boresight within ``SOLVED_ARCSEC`` of the truth and its roll error moves the sensor's corners by no more than that.
+Latency is the wall time of one call (median, 95th percentile), databases built or loaded before.  Tracking gets a
+prior 0.05 deg off the truth (random axis) on the sets with at least 30 stars, cut to their 30 brightest.
+
+    python benchmarks/identify_peers.py [--sets N] [--fov {12,20}] [--mag-limit MAG] [--seed S] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from starenv.agents.base import Stars
+from starenv.agents.identify import LostInSpaceIdentifier, TrackingIdentifier
+from starenv.frames import ARCSEC, DEG, pointing
+from starenv.optics import Camera
+from starenv.sky import load_catalog
+
+REPO = Path(__file__).resolve().parent.parent
+VENV = REPO / ".peers-venv"
+PEERS = ("cedar-solve==0.5.1", "tetra3rs==0.14.0")
+RUNNER = Path(__file__).resolve().parent / "peers" / "run_peers.py"
+EPOCH = 2025.0
+NOISE_PX = 0.3
+BLEND_PX = 3.0
+PRIOR_ERROR_DEG = 0.05
+TRACK_STARS = 30
+CHECK_SETS = 10  # noise-free sets for the peers' convention check
+SOLVED_ARCSEC = 60.0
+ID_TOLERANCE_ARCSEC = 10.0
+MAG_LIMIT = {12: 6.5, 20: 5.5}
+
+
+def make_camera(fov_deg: int) -> Camera:
+    """Seed 002's head (12 deg) or the same sensor behind a 20 deg lens."""
+    if fov_deg == 12:
+        return Camera.from_focal_length(58.5e-3, 12e-6, 1024, 1024)
+    return Camera.from_fov(float(fov_deg), 1024, 1024, 12e-6)
+
+
+def make_sets(camera: Camera, mag_limit: float, count: int, rng: np.random.Generator) -> dict:
+    """``count`` centroid sets with their truth, as flat arrays (see the module docstring and run_peers.py)."""
+    catalog = load_catalog(mag_limit, EPOCH)
+    sizes, xy, clean, flux, unit, hip, attitudes = [], [], [], [], [], [], []
+    for _ in range(count):
+        ra, dec, roll = rng.uniform(0.0, 2 * np.pi), np.arcsin(rng.uniform(-1.0, 1.0)), rng.uniform(0.0, 2 * np.pi)
+        attitude = pointing(ra, dec, roll).as_matrix()  # inertial -> camera
+        rows = catalog.cone(attitude[2], camera.half_diagonal)
+        rows = rows[np.argsort(catalog.magnitude[rows], kind="stable")]
+        true_xy, front = camera.project(catalog.unit[rows] @ attitude.T)
+        rows, true_xy = rows[front], true_xy[front]
+        blended = {j for _, j in cKDTree(true_xy).query_pairs(BLEND_PX)} if len(rows) > 1 else set()
+        keep = np.setdiff1d(np.arange(len(rows)), list(blended))
+        rows, true_xy = rows[keep], true_xy[keep]
+        noisy = true_xy + rng.normal(0.0, NOISE_PX, true_xy.shape)
+        inside = camera.in_frame(noisy)
+        sizes.append(int(inside.sum()))
+        xy.append(noisy[inside])
+        clean.append(true_xy[inside])
+        flux.append(10.0 ** (-0.4 * catalog.magnitude[rows[inside]]))
+        unit.append(catalog.unit[rows[inside]])
+        hip.append(catalog.hip[rows[inside]])
+        attitudes.append(attitude)
+    axes = rng.normal(size=(count, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    priors = (Rotation.from_rotvec(axes * PRIOR_ERROR_DEG * DEG) * Rotation.from_matrix(np.array(attitudes)))
+    return {
+        "width": camera.width, "height": camera.height, "fov_deg": np.degrees(camera.fov[0]),
+        "half_diagonal": camera.half_diagonal, "sizes": np.array(sizes), "xy": np.concatenate(xy),
+        "xy_clean": np.concatenate(clean), "flux": np.concatenate(flux), "unit": np.concatenate(unit),
+        "hip": np.concatenate(hip), "attitude": np.array(attitudes), "prior": priors.as_matrix(),
+        "track": np.flatnonzero(np.array(sizes) >= TRACK_STARS), "track_stars": TRACK_STARS,
+        "check": np.arange(min(CHECK_SETS, count)), "solved_arcsec": SOLVED_ARCSEC,
+        "id_tolerance_arcsec": ID_TOLERANCE_ARCSEC,
+    }
+
+
+def split(sets: dict, name: str) -> list[np.ndarray]:
+    """A flat per-centroid array of ``sets`` cut into its sets."""
+    return np.split(sets[name], np.cumsum(sets["sizes"])[:-1])
+
+
+def timed_rows(identifier, camera: Camera, stars: list[Stars], hips: list[np.ndarray], priors) -> list[list]:
+    """Per set [centroids, correct, wrong, solved, latency s] of ``identifier`` (one untimed call first)."""
+    identifier.identify([stars[0]], [camera], priors[0])
+    rows = []
+    for s, hip, prior in zip(stars, hips, priors, strict=True):
+        start = time.perf_counter()
+        ids = identifier.identify([s], [camera], prior)[0].catalog_id
+        latency = time.perf_counter() - start
+        correct, wrong = int(np.sum(ids == hip)), int(np.sum((ids >= 0) & (ids != hip)))
+        rows.append([len(s), correct, wrong, correct >= 3 and wrong == 0, latency])
+    return rows
+
+
+def run_starenv(camera: Camera, sets: dict, mag_limit: float) -> dict:
+    """starenv's lost-in-space rows on all sets and tracking rows on the 30-star sets, with the database build time."""
+    catalog = load_catalog(mag_limit, EPOCH)
+    lis = LostInSpaceIdentifier()
+    with tempfile.TemporaryDirectory() as cache, mock.patch.dict(os.environ, {"STARENV_CACHE_DIR": cache}):
+        start = time.perf_counter()
+        lis.reset([camera], catalog)
+        build_s = time.perf_counter() - start
+    stars = [Stars(xy, f) for xy, f in zip(split(sets, "xy"), split(sets, "flux"), strict=True)]
+    hips = split(sets, "hip")
+    tracker = TrackingIdentifier(fallback=lis)
+    tracker.reset([camera], catalog)
+    track = sets["track"]
+    n = sets["track_stars"]
+    priors = [Rotation.from_matrix(sets["prior"][i]) for i in track]
+    return {
+        "build_s": build_s,
+        "database": f"{len(lis.database)} patterns of {len(lis.database.hip)} stars (Hp <= {mag_limit})",
+        "lis": timed_rows(lis, camera, stars, hips, [None] * len(stars)),
+        "tracking": timed_rows(tracker, camera, [Stars(stars[i].xy[:n], stars[i].flux[:n]) for i in track],
+                               [hips[i][:n] for i in track], priors),
+    }
+
+
+def peers_python() -> Path:
+    """The peers' virtual environment's python, creating the environment and installing the peers if needed."""
+    python = VENV / "bin" / "python"
+    if not python.exists():
+        subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True)
+    probe = "import importlib.metadata as m; [m.version(p) for p in ('cedar-solve', 'tetra3rs')]"
+    if subprocess.run([str(python), "-c", probe], capture_output=True).returncode != 0:
+        subprocess.run([str(python), "-m", "pip", "install", "--quiet", *PEERS], check=True)
+    return python
+
+
+def run_peers(sets: dict) -> dict:
+    """The peers' rows (see run_peers.py), from a subprocess in their environment."""
+    python = peers_python()
+    with tempfile.TemporaryDirectory() as folder:
+        np.savez(Path(folder) / "sets.npz", **sets)
+        subprocess.run([str(python), str(RUNNER), str(Path(folder) / "sets.npz"), str(Path(folder) / "peers.json")],
+                       check=True)
+        return json.loads((Path(folder) / "peers.json").read_text())
+
+
+def summary(rows: list[list]) -> dict:
+    """Table entries of per-set rows [centroids, correct, wrong, solved, latency s]."""
+    table = np.array(rows, dtype=np.float64).reshape(-1, 5)
+    stars = table[:, 0].sum()
+    return {
+        "sets": len(table), "solved": int(table[:, 3].sum()), "id_rate": table[:, 1].sum() / stars,
+        "false_id_rate": table[:, 2].sum() / stars, "median_ms": 1e3 * float(np.median(table[:, 4])),
+        "p95_ms": 1e3 * float(np.percentile(table[:, 4], 95)),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sets", type=int, default=200)
+    parser.add_argument("--fov", type=int, choices=sorted(MAG_LIMIT), default=12)
+    parser.add_argument("--mag-limit", type=float, default=None, help="faintest star (Hp); default by --fov")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, default=None, help="also write the table here")
+    args = parser.parse_args()
+    mag_limit = MAG_LIMIT[args.fov] if args.mag_limit is None else args.mag_limit
+    camera = make_camera(args.fov)
+    sets = make_sets(camera, mag_limit, args.sets, np.random.default_rng(args.seed))
+    sizes = sets["sizes"]
+    print(f"{args.sets} sets, {np.degrees(camera.fov[0]):.2f} deg field, Hp <= {mag_limit}, {NOISE_PX} px noise: "
+          f"{np.median(sizes):.0f} stars a set (5-95%: {np.percentile(sizes, 5):.0f}-{np.percentile(sizes, 95):.0f}); "
+          f"tracking on {len(sets['track'])} sets cut to {TRACK_STARS} stars")
+    ours = run_starenv(camera, sets, mag_limit)
+    peers = run_peers(sets)
+    print(f"databases: starenv {ours['database']}, built in {ours['build_s']:.2f} s")
+    for name, peer in peers.items():
+        print(f"           {name} {peer['database']}, {peer['build']} in {peer['build_s']:.2f} s; "
+              f"noise-free check: {peer['check']}")
+    methods = {
+        "starenv lost-in-space": ours["lis"],
+        **{f"{name} lost-in-space": peer["lis"] for name, peer in peers.items()},
+        f"starenv tracking ({TRACK_STARS} stars)": ours["tracking"],
+        **{f"{name} tracking ({TRACK_STARS} stars)": peer["tracking"] for name, peer in peers.items()
+           if "tracking" in peer},
+    }
+    table = {name: summary(rows) for name, rows in methods.items()}
+    print(f"\n{'method':34} | {'sets solved':>11} | {'per-star ID':>11} | {'false ID':>8} | {'median ms':>9} | "
+          f"{'p95 ms':>8}")
+    for name, row in table.items():
+        print(f"{name:34} | {row['solved']:>5}/{row['sets']:<5} | {row['id_rate']:11.1%} | "
+              f"{row['false_id_rate']:8.2%} | {row['median_ms']:9.2f} | {row['p95_ms']:8.2f}")
+    ours_lis, tracking = table["starenv lost-in-space"], table[f"starenv tracking ({TRACK_STARS} stars)"]
+    goals = {
+        "id_rate_vs_cedar": ours_lis["id_rate"] / table["cedar-solve lost-in-space"]["id_rate"],
+        "latency_vs_tetra3rs": ours_lis["median_ms"] / table["tetra3rs lost-in-space"]["median_ms"],
+        "tracking_median_ms": tracking["median_ms"],
+    }
+    print(f"\nper-star ID rate / cedar-solve's:          {goals['id_rate_vs_cedar']:.3f}  (goal >= 1)")
+    print(f"median LIS latency / tetra3rs's:           {goals['latency_vs_tetra3rs']:.2f}   (goal <= 2)")
+    print(f"median tracking latency, {TRACK_STARS} stars:        {goals['tracking_median_ms']:.3f} ms (goal <= 1 ms)")
+    if args.json is not None:
+        settings = {"sets": args.sets, "fov_deg": float(sets["fov_deg"]), "mag_limit": mag_limit, "seed": args.seed,
+                    "noise_px": NOISE_PX, "tracking_sets": len(sets["track"])}
+        args.json.write_text(json.dumps({"settings": settings, "table": table, "goals": goals}, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,192 @@
+"""cedar-solve and tetra3rs on the centroid sets of ``benchmarks/identify_peers.py``; runs in the peers' own virtual
+environment (numpy < 2), so it imports nothing of starenv.
+
+    python run_peers.py SETS.npz RESULT.json
+
+SETS.npz holds flat per-centroid arrays ``xy`` (px, (0, 0) the centre of the top-left pixel, +x right, +y down),
+``xy_clean`` (the same without noise), ``flux`` and ``unit`` (the true stars' ICRS unit vectors), cut into sets by
+``sizes``; per set the true and the prior attitude (``attitude``, ``prior``: inertial -> camera matrices, camera +x
+along columns, +y along rows, +z the boresight); the sensor (``width``, ``height``, ``fov_deg`` across columns,
+``half_diagonal`` rad); the tracking sets ``track`` (cut to their ``track_stars`` brightest), the noise-free
+convention-check sets ``check`` and the scoring tolerances.  RESULT.json gets, per peer, its database, build or load
+time, the convention check and per-set rows [centroids, correct, wrong, solved, latency s] for lost in space (all
+sets) and tracking (tetra3rs only).
+
+Conventions (checked on the noise-free sets every run): cedar-solve takes (y, x) from the top-left corner of the
+image (pixel centres at +0.5) and returns RA, Dec and roll of a frame with +x the boresight, +y image left, +z image
+up; tetra3rs takes (x, y) from the image centre and returns an inertial -> camera matrix with starenv's axes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+ARCSEC = np.pi / 180.0 / 3600.0
+
+
+def unit_vectors(ra_deg, dec_deg) -> np.ndarray:
+    """ICRS unit vectors (n, 3) of RA and Dec in degrees."""
+    ra, dec = np.radians(ra_deg), np.radians(dec_deg)
+    return np.stack([np.cos(dec) * np.cos(ra), np.cos(dec) * np.sin(ra), np.sin(dec)], axis=-1).reshape(-1, 3)
+
+
+def cedar_matrix(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarray:
+    """Inertial -> camera matrix (starenv's camera axes) of cedar-solve's RA, Dec and roll (its Euler angles)."""
+    ra, dec, roll = np.radians([ra_deg, dec_deg, roll_deg])
+    about_z = np.array([[np.cos(ra), np.sin(ra), 0.0], [-np.sin(ra), np.cos(ra), 0.0], [0.0, 0.0, 1.0]])
+    about_y = np.array([[np.cos(dec), 0.0, np.sin(dec)], [0.0, 1.0, 0.0], [-np.sin(dec), 0.0, np.cos(dec)]])
+    about_x = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(roll), np.sin(roll)], [0.0, -np.sin(roll), np.cos(roll)]])
+    boresight, left, up = about_x @ about_y @ about_z
+    return np.stack([-left, -up, boresight])
+
+
+def attitude_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """Boresight direction error and roll error about it (rad) of an inertial -> camera matrix."""
+    boresight = np.arccos(np.clip(estimate[2] @ truth[2], -1.0, 1.0))
+    error = estimate @ truth.T
+    return float(boresight), float(abs(np.arctan2(error[0, 1] - error[1, 0], error[0, 0] + error[1, 1])))
+
+
+class Sets:
+    """The centroid sets and their truth."""
+
+    def __init__(self, path: str):
+        data = np.load(path)
+        self.data = data
+        cuts = np.cumsum(data["sizes"])[:-1]
+        self.xy, self.clean = np.split(data["xy"], cuts), np.split(data["xy_clean"], cuts)
+        self.flux, self.unit = np.split(data["flux"], cuts), np.split(data["unit"], cuts)
+        self.size = (int(data["height"]), int(data["width"]))
+        self.fov_deg = float(data["fov_deg"])
+        self.corner_sine = float(np.sin(data["half_diagonal"]))
+        self.solved_rad = float(data["solved_arcsec"]) * ARCSEC
+        self.id_rad = float(data["id_tolerance_arcsec"]) * ARCSEC
+
+    def row(self, index: int, stars: int, matches, estimate, latency: float) -> list:
+        """[centroids, correct, wrong, solved, latency s]; ``matches`` (centroid rows, catalogue unit vectors)."""
+        rows, catalog = matches
+        close = np.sum(self.unit[index][rows] * catalog, axis=1) >= np.cos(self.id_rad)
+        solved = False
+        if estimate is not None:
+            boresight, roll = attitude_errors(estimate, self.data["attitude"][index])
+            solved = boresight <= self.solved_rad and roll * self.corner_sine <= self.solved_rad
+        return [stars, int(close.sum()), int((~close).sum()), bool(solved), latency]
+
+    def check(self, solve, read) -> str:
+        """Median and largest boresight and roll errors of a peer on the noise-free sets."""
+        errors = []
+        for i in self.data["check"]:
+            estimate, _ = read(solve(self.clean[i], self.flux[i]), self.clean[i])
+            if estimate is not None:
+                errors.append(attitude_errors(estimate, self.data["attitude"][i]))
+        if not errors:
+            return "no noise-free set solved"
+        e = np.array(errors) / ARCSEC
+        return (f"{len(e)}/{len(self.data['check'])} solved, boresight error median {np.median(e[:, 0]):.2f}\" "
+                f"max {e[:, 0].max():.2f}\", roll error median {np.median(e[:, 1]):.1f}\" max {e[:, 1].max():.1f}\"")
+
+    def rows(self, solve, read, indices, stars=None, priors=None) -> list[list]:
+        """Per-set rows of a peer: ``solve(xy, flux[, prior])`` is the timed call (one untimed call first),
+        ``read(result, xy) -> (estimate, matches)`` its answer."""
+        priors = [()] * len(indices) if priors is None else [(p,) for p in priors]
+        cut = slice(stars)
+        solve(self.xy[indices[0]][cut], self.flux[indices[0]][cut], *priors[0])
+        out = []
+        for i, prior in zip(indices, priors):
+            xy = self.xy[i][cut]
+            start = time.perf_counter()
+            result = solve(xy, self.flux[i][cut], *prior)
+            latency = time.perf_counter() - start
+            estimate, matches = read(result, xy)
+            out.append(self.row(i, len(xy), matches, estimate, latency))
+        return out
+
+
+NO_MATCHES = (np.zeros(0, dtype=int), np.zeros((0, 3)))
+
+
+def cedar(sets: Sets) -> dict:
+    """cedar-solve with its default database (it builds others only from catalogue files it would download)."""
+    logging.getLogger("tetra3.Tetra3").addHandler(logging.NullHandler())  # keeps its constructor's chatter off
+    import tetra3
+
+    start = time.perf_counter()
+    solver = tetra3.Tetra3("default_database")
+    load_s = time.perf_counter() - start
+    props = solver.database_properties
+
+    def solve(xy, flux):
+        return solver.solve_from_centroids(xy[:, ::-1] + 0.5, sets.size, fov_estimate=sets.fov_deg,
+                                           return_matches=True)
+
+    def read(result, xy):
+        if result["RA"] is None:
+            return None, NO_MATCHES
+        _, rows = cKDTree(xy[:, ::-1] + 0.5).query(np.asarray(result["matched_centroids"]).reshape(-1, 2))
+        stars = np.asarray(result["matched_stars"]).reshape(-1, 3)
+        return cedar_matrix(result["RA"], result["Dec"], result["Roll"]), (rows, unit_vectors(stars[:, 0], stars[:, 1]))
+
+    return {
+        "database": (f"default database: {props['num_patterns']} patterns, {len(solver.star_table)} stars "
+                     f"({props['star_catalog']}, mag <= {props['star_max_magnitude']:.2f}), fields "
+                     f"{props['min_fov']:g}-{props['max_fov']:g} deg"),
+        "build": "loaded",
+        "build_s": load_s,
+        "check": sets.check(solve, read),
+        "lis": sets.rows(solve, read, np.arange(len(sets.xy))),
+    }
+
+
+def tetra3rs_peer(sets: Sets) -> dict:
+    """tetra3rs with a database built for the sets' field from its bundled Gaia + Hipparcos catalogue."""
+    import tetra3rs
+
+    start = time.perf_counter()
+    db = tetra3rs.SolverDatabase.generate_from_gaia(max_fov_deg=sets.fov_deg, epoch_proper_motion_year=2025.0)
+    build_s = time.perf_counter() - start
+    params = db.parameters
+    height, width = sets.size
+    centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+
+    def solve(xy, flux, prior=None):
+        hint = {} if prior is None else {"attitude_hint": prior, "hint_uncertainty_deg": 0.05}
+        return db.solve_from_centroids(np.column_stack([xy - centre, flux]), fov_estimate_deg=sets.fov_deg,
+                                       image_width=width, image_height=height, **hint)
+
+    def read(result, xy):
+        if not result:
+            return None, NO_MATCHES
+        stars = [db.get_star_by_id(int(i)) for i in result.matched_catalog_ids]
+        catalog = unit_vectors([s.ra_deg for s in stars], [s.dec_deg for s in stars])
+        return result.rotation_matrix_icrs_to_camera, (result.matched_centroids.astype(int), catalog)
+
+    track = sets.data["track"]
+    tracking = []
+    if len(track):
+        tracking = sets.rows(solve, read, track, int(sets.data["track_stars"]), sets.data["prior"][track])
+    return {
+        "database": (f"{params['num_patterns']} patterns, {params['num_stars']} stars (Gaia G <= "
+                     f"{params['star_max_magnitude']:.2f}), field {params['max_fov_deg']:.2f} deg"),
+        "build": "built",
+        "build_s": build_s,
+        "check": sets.check(solve, read),
+        "lis": sets.rows(solve, read, np.arange(len(sets.xy))),
+        "tracking": tracking,
+    }
+
+
+def main() -> None:
+    sets = Sets(sys.argv[1])
+    result = {"cedar-solve": cedar(sets), "tetra3rs": tetra3rs_peer(sets)}
+    with open(sys.argv[2], "w") as out:
+        json.dump(result, out)
+
+
+if __name__ == "__main__":
+    main()

@@ -78,7 +78,7 @@ def cmd_run(args) -> int:
     if args.pipeline != "none":
         from starenv.agents.pipeline import Pipeline
 
-        pipeline = Pipeline(**_agents(args.agent))
+        pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent))
     sc = env.scenario
     steps = sc.n_steps - 1 if args.steps is None else args.steps
     obs, info = env.reset(seed=sc.seed if args.seed is None else args.seed)

@@ -13,6 +13,8 @@ Layout (see the bundled files in ``scenarios/`` for complete, commented examples
                     initial_ra_deg / initial_dec_deg / initial_roll_deg (boresight of head 0 and its roll),
                     optional [motion.jitter] superposed on any kind
     [gyro]          GyroSpec fields            [drops]  DropModel fields
+    [pipeline]      optional agents, role = "module:Class" or "none" (roles: predictor, deblurrer, detector,
+                    corrector, identifier, solver), catalog_mag_limit, and [pipeline.options.ROLE] constructor options
     [[heads]]       optics and mounting, with [heads.distortion], [heads.detector], [heads.stray_light] and
                     [heads.calibration] (what the sensor believes its camera is; defaults to the truth)
 """
@@ -30,6 +32,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from starenv.agents.base import AGENT_ROLES
 from starenv.detector import DetectorSpec
 from starenv.drops import DropModel
 from starenv.frames import ARCSEC, DEG, pointing
@@ -372,6 +375,42 @@ def _trajectory(tbl: _Table, head0: Camera) -> Trajectory:
 
 
 @dataclass
+class PipelineSpec:
+    """Agents a scenario asks for: role -> ``"module:Class"`` or None (empty); roles not named keep the defaults."""
+
+    agents: dict[str, str | None] = field(default_factory=dict)
+    options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    catalog_mag_limit: float | None = None
+
+
+def _pipeline(tbl: _Table | None) -> PipelineSpec:
+    spec = PipelineSpec()
+    if tbl is None:
+        return spec
+    for role in AGENT_ROLES:
+        if role in tbl.data:
+            value = tbl.string(role)
+            module, sep, cls = value.partition(":")
+            if value.lower() == "none":
+                spec.agents[role] = None
+            elif not (sep and module and cls):
+                tbl.fail(role, "'module:Class' (e.g. 'starenv.agents.solve:SvdSolver') or 'none'", value)
+            else:
+                spec.agents[role] = value
+    spec.catalog_mag_limit = tbl.number("catalog_mag_limit", None, low=-2.0, high=14.0)
+    options = tbl.table("options")
+    if options is not None:
+        for role in AGENT_ROLES:
+            role_options = options.table(role)
+            if role_options is not None:
+                spec.options[role] = dict(role_options.data)
+                role_options.used.update(role_options.data)
+        options.finish()
+    tbl.finish()
+    return spec
+
+
+@dataclass
 class Scenario:
     """A validated mission: timing, motion, gyro, drops and camera heads, plus its source for reproduction."""
 
@@ -390,6 +429,7 @@ class Scenario:
     gyro: GyroSpec
     drops: DropModel
     heads: list[HeadSpec]
+    pipeline: PipelineSpec
     source: str
     data: dict = field(repr=False)
 
@@ -489,10 +529,11 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
     trajectory = _trajectory(top.table("motion", required=True), heads[0].camera)
     gyro = _dataclass_from_table(top.table("gyro"), GyroSpec)
     drops = _dataclass_from_table(top.table("drops"), DropModel)
+    pipeline = _pipeline(top.table("pipeline"))
     top.finish()
     return Scenario(
         name, description, seed, duration, frame_rate, exposure, mag_limit, epoch, sky, lost_after, avail,
-        trajectory, gyro, drops, heads, source, data,
+        trajectory, gyro, drops, heads, pipeline, source, data,
     )
 
 

@@ -47,8 +47,9 @@ def cedar_matrix(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarray:
 
 
 def attitude_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    """Boresight direction error and roll error about it (rad) of an inertial -> camera matrix."""
-    boresight = np.arccos(np.clip(estimate[2] @ truth[2], -1.0, 1.0))
+    """Boresight direction error and roll error about it (rad) of an inertial -> camera matrix (tetra3rs's is
+    orthonormal to about 1e-7 only, so no arccos of a dot product)."""
+    boresight = np.arctan2(np.linalg.norm(np.cross(estimate[2], truth[2])), estimate[2] @ truth[2])
     error = estimate @ truth.T
     return float(boresight), float(abs(np.arctan2(error[0, 1] - error[1, 0], error[0, 0] + error[1, 1])))
 
@@ -71,7 +72,7 @@ class Sets:
     def row(self, index: int, stars: int, matches, estimate, latency: float) -> list:
         """[centroids, correct, wrong, solved, latency s]; ``matches`` (centroid rows, catalogue unit vectors)."""
         rows, catalog = matches
-        close = np.sum(self.unit[index][rows] * catalog, axis=1) >= np.cos(self.id_rad)
+        close = np.linalg.norm(self.unit[index][rows] - catalog, axis=1) <= 2.0 * np.sin(self.id_rad / 2.0)
         solved = False
         if estimate is not None:
             boresight, roll = attitude_errors(estimate, self.data["attitude"][index])

@@ -16,6 +16,8 @@ from scipy.spatial.transform import Rotation
 from starenv.optics import Camera
 from starenv.sky import StarCatalog
 
+AGENT_ROLES = ("predictor", "deblurrer", "detector", "corrector", "identifier", "solver")
+
 
 @dataclass
 class GyroRecord:

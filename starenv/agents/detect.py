@@ -60,7 +60,8 @@ STREAK_ANISOTROPY_PX2 = 2.0  # blob-mask variance along minus across its axis ab
 FIT_ITERATIONS = 30  # at most; the fit stops once no centre moves by FIT_TOLERANCE_PX
 FIT_TOLERANCE_PX = 1e-4
 MAX_LABELS = 2**24  # labels are carried in float32 images, exact up to here
-NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+BOX = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]  # a 3 x 3 neighbourhood
+NEIGHBOURS = [(dy, dx) for dy, dx in BOX if dy or dx]
 FORWARD_NEIGHBOURS = [(0, 1), (1, -1), (1, 0), (1, 1)]  # each 8-connected pixel pair once
 
 
@@ -68,6 +69,13 @@ def _flag(name: str, value) -> bool:
     if not isinstance(value, bool | np.bool_):
         raise ValueError(f"{name} must be True or False, got {value!r}")
     return bool(value)
+
+
+def _box(index: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Flat indices (9, n) of the 3 x 3 neighbourhoods (BOX order, clipped at the border) of flat pixel indices."""
+    height, width = shape
+    y, x = np.divmod(index, width)
+    return np.stack([np.clip(y + dy, 0, height - 1) * width + np.clip(x + dx, 0, width - 1) for dy, dx in BOX])
 
 
 def _pixel_fractions(sigma_px: float) -> tuple[float, float]:
@@ -206,7 +214,7 @@ class CentroidDetector:
             touching = (x <= m) | (y <= m) | (x >= width - 1 - m) | (y >= height - 1 - m)
             good &= np.bincount(blobs.label[c], touching, n) == 0
         if self.reject_sharp:
-            good &= self._not_sharp(blobs, resid, noise) & ~self._track_remnant(blobs, removed, m)
+            good &= self._not_sharp(blobs, resid, noise) & ~self._track_remnant(grown, n, removed, blobs.flux)
 
         streak = blobs.mask_anisotropy() > STREAK_ANISOTROPY_PX2
         xy = blobs.centroid(blobs.positive)
@@ -309,34 +317,38 @@ class CentroidDetector:
         top = int(image.max())
         return top if top >= 255 and (top + 1) & top == 0 else None
 
-    def _clean_spikes(self, resid: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    def _clean_spikes(self, resid: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Replace, in place, spikes (hot pixels, cosmic-ray hits and tracks, alone or on a star) by the median of
-        their 3 x 3 neighbourhood; return the DN taken off each pixel.
+        their 3 x 3 neighbourhood; return their flat indices and the DN taken off each.
 
         A spike stands above its median, scaled by SPIKE_MARGIN times the least ratio of median to value that a PSF
         pixel shows, by SPIKE_SIGMA noise sigmas.  A second pass, on the cleaned image, adds the spikes' neighbours
         standing out by SPIKE_GROW_SIGMA (a track's ragged edge) and renews every replacement from cleaned
-        neighbourhoods.
+        neighbourhoods.  Only pixels whose scaled value alone passes the first test are examined.
         """
-        original = resid.copy()
-        gain = np.float32(SPIKE_MARGIN * self._median_ratio)
-        unit = noise * np.float32(math.hypot(SPIKE_MARGIN * self._median_ratio, MEDIAN_NOISE))
+        flat, noise_flat = resid.ravel(), noise.ravel()
+        gain = SPIKE_MARGIN * self._median_ratio
+        unit = math.hypot(gain, MEDIAN_NOISE)
 
-        def excess(median):
+        def excess(index, median):
             """Significance (noise sigmas) of each pixel's excess over what its 3 x 3 median allows."""
-            z = resid * gain
-            z -= median
-            z /= unit
-            return z
+            return (flat[index] * gain - median) / (noise_flat[index] * unit)
 
-        median = cv2.medianBlur(resid, 3)
-        spike = excess(median) > SPIKE_SIGMA
-        resid[spike] = median[spike]
-        median = cv2.medianBlur(resid, 3)
-        near = cv2.dilate(spike.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
-        spike |= near & (excess(median) > SPIKE_GROW_SIGMA)
-        resid[spike] = median[spike]
-        return original - resid
+        candidate = np.flatnonzero((resid * np.float32(gain / (SPIKE_SIGMA * unit)) > noise).ravel())
+        median = np.median(flat[_box(candidate, resid.shape)], axis=0)
+        is_spike = excess(candidate, median) > SPIKE_SIGMA
+        first = candidate[is_spike]
+        original = flat[first].astype(np.float64)
+        flat[first] = median[is_spike]
+        near = np.unique(_box(first, resid.shape))
+        median = np.median(flat[_box(near, resid.shape)], axis=0)
+        was_first = np.isin(near, first)
+        is_spike = was_first | (excess(near, median) > SPIKE_GROW_SIGMA)
+        index = near[is_spike]
+        before = flat[index].astype(np.float64)
+        before[was_first[is_spike]] = original  # first and index are both sorted
+        flat[index] = median[is_spike]
+        return index, before - flat[index]
 
     def _deblend(self, core: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int) -> int:
         """Split blobs of ``core`` (float32 labels 1 .. n, 0 elsewhere) holding several significant maxima of
@@ -395,23 +407,21 @@ class CentroidDetector:
         core_flat[pixel] = compact + 1
         return int(compact.max()) + 1
 
-    def _track_remnant(self, blobs: _Blobs, removed: np.ndarray, margin_px: int) -> np.ndarray:
-        """Mask of blobs that are what is left of a cosmic-ray track after cleaning: more light was taken off
-        around one of their pixels (within their growth + 1 px) than they hold."""
-        side = 2 * margin_px + 3
-        around = cv2.boxFilter(removed, -1, (side, side), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        lost = np.zeros(blobs.n)
-        np.maximum.at(lost, blobs.label[blobs.in_core], around.ravel()[blobs.pixel[blobs.in_core]])
-        return lost >= blobs.flux
+    def _track_remnant(self, grown: np.ndarray, n: int, removed: tuple[np.ndarray, np.ndarray], flux: np.ndarray):
+        """Mask of blobs that are what is left of a cosmic-ray track after cleaning: more light was taken off within
+        1 px of their grown region than they hold."""
+        index, amount = removed
+        owner = grown.ravel()[_box(index, grown.shape)].astype(np.intp)  # (9, spikes)
+        pairs = np.unique(np.stack([owner.ravel(), np.tile(np.arange(len(index)), 9)]), axis=1)
+        pairs = pairs[:, pairs[0] > 0]
+        return np.bincount(pairs[0] - 1, amount[pairs[1]], n) >= flux
 
     def _not_sharp(self, blobs: _Blobs, resid: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """Mask of blobs no sharper than the PSF: enough light around the peak, and not a one-pixel-wide track."""
         height, width = resid.shape
-        py, px = np.divmod(blobs.peak, width)
-        around = np.zeros(len(py), np.float32)
-        for dy, dx in NEIGHBOURS:
-            around += resid[np.clip(py + dy, 0, height - 1), np.clip(px + dx, 0, width - 1)]
-        spread = around >= self._min_neighbour_ratio * resid[py, px]
+        peak = resid.ravel()[blobs.peak]
+        around = resid.ravel()[_box(blobs.peak, resid.shape)].sum(axis=0) - peak
+        spread = around >= self._min_neighbour_ratio * peak
 
         # Light beside the ridge (pixels of at least half the peak) across the blob's principal axis, along the
         # pixel direction nearest the normal: a one-pixel-wide track has none there.

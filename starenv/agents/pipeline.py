@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import (
+    AGENT_ROLES,
     AttitudeSolver,
     Deblurrer,
     DistortionCorrector,
@@ -37,14 +38,8 @@ from starenv.env import MAX_STARS
 from starenv.sky import load_catalog
 
 ONBOARD_MAX_MAG = 7.5
-ROLES = {
-    "predictor": Predictor,
-    "deblurrer": Deblurrer,
-    "detector": StarDetector,
-    "corrector": DistortionCorrector,
-    "identifier": Identifier,
-    "solver": AttitudeSolver,
-}
+ROLES = dict(zip(AGENT_ROLES, (Predictor, Deblurrer, StarDetector, DistortionCorrector, Identifier, AttitudeSolver),
+                 strict=True))
 DEFAULTS = {
     "predictor": "starenv.agents.predict:QuaternionPredictor",
     "deblurrer": None,
@@ -101,6 +96,15 @@ class Pipeline:
         self.gyro_dt = 0.0
         self.latency_s: dict[str, float] = {}
         self.source = "none"
+
+    @classmethod
+    def for_scenario(cls, scenario, agents: dict | None = None, options: dict | None = None) -> Pipeline:
+        """The pipeline a scenario's ``[pipeline]`` table asks for, with ``agents`` / ``options`` taking precedence."""
+        spec = scenario.pipeline
+        merged = {**spec.options}
+        for role, opts in (options or {}).items():
+            merged[role] = {**merged.get(role, {}), **opts}
+        return cls(spec.catalog_mag_limit, merged, **{**spec.agents, **(agents or {})})
 
     def describe(self) -> dict[str, str]:
         """Role -> agent class path (``None`` where the role is empty)."""

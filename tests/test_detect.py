@@ -99,7 +99,7 @@ def test_gaussian_fit_and_weighted_centroid_beat_plain_centre_of_gravity_on_a_fa
     rng = np.random.default_rng(11)
     squared = {m: [] for m in METHODS}
     for seed in range(30):
-        frame = render(rng.uniform([100.0, 100.0], [400.0, 400.0]), 6.0)  # peak SNR about 8
+        frame = render(rng.uniform([100.0, 100.0], [400.0, 400.0]), 6.0)  # peak pixel SNR about 5.5
         image = read_out(frame.signal, seed)
         for method in METHODS:
             miss = nearest_px(CentroidDetector(method=method, psf_sigma_px=SIGMA).detect(image, CAM),

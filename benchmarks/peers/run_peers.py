@@ -4,13 +4,14 @@ environment (numpy < 2), so it imports nothing of starenv.
     python run_peers.py SETS.npz RESULT.json
 
 SETS.npz holds flat per-centroid arrays ``xy`` (px, (0, 0) the centre of the top-left pixel, +x right, +y down),
-``xy_clean`` (the same without noise), ``flux`` and ``unit`` (the true stars' ICRS unit vectors), cut into sets by
-``sizes``; per set the true and the prior attitude (``attitude``, ``prior``: inertial -> camera matrices, camera +x
-along columns, +y along rows, +z the boresight); the sensor (``width``, ``height``, ``fov_deg`` across columns,
+``xy_clean`` (the same without noise), ``flux`` and ``unit_cedar``, ``unit_tetra3rs`` (the true stars' ICRS unit
+vectors at the epoch of each peer's catalogue), cut into sets by ``sizes``; per set the true and the prior attitude
+(``attitude``, ``prior``: inertial -> camera matrices, camera +x along columns, +y along rows, +z the boresight) and
+the prior's error ``prior_error_deg``; the sensor (``width``, ``height``, ``fov_deg`` across columns,
 ``half_diagonal`` rad); the tracking sets ``track`` (cut to their ``track_stars`` brightest), the noise-free
 convention-check sets ``check`` and the scoring tolerances.  RESULT.json gets, per peer, its database, build or load
 time, the convention check and per-set rows [centroids, correct, wrong, solved, latency s] for lost in space (all
-sets) and tracking (tetra3rs only).
+sets) and tracking (tetra3rs only; its hint uncertainty is the prior's error).
 
 Conventions (checked on the noise-free sets every run): cedar-solve takes (y, x) from the top-left corner of the
 image (pixel centres at +0.5) and returns RA, Dec and roll of a frame with +x the boresight, +y image left, +z image
@@ -55,14 +56,14 @@ def attitude_errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, flo
 
 
 class Sets:
-    """The centroid sets and their truth."""
+    """The centroid sets and their truth for one peer (``unit_<peer>`` are the true star directions)."""
 
-    def __init__(self, path: str):
+    def __init__(self, path: str, peer: str):
         data = np.load(path)
         self.data = data
         cuts = np.cumsum(data["sizes"])[:-1]
         self.xy, self.clean = np.split(data["xy"], cuts), np.split(data["xy_clean"], cuts)
-        self.flux, self.unit = np.split(data["flux"], cuts), np.split(data["unit"], cuts)
+        self.flux, self.unit = np.split(data["flux"], cuts), np.split(data[f"unit_{peer}"], cuts)
         self.size = (int(data["height"]), int(data["width"]))
         self.fov_deg = float(data["fov_deg"])
         self.corner_sine = float(np.sin(data["half_diagonal"]))
@@ -99,7 +100,7 @@ class Sets:
         cut = slice(stars)
         solve(self.xy[indices[0]][cut], self.flux[indices[0]][cut], *priors[0])
         out = []
-        for i, prior in zip(indices, priors):
+        for i, prior in zip(indices, priors, strict=True):
             xy = self.xy[i][cut]
             start = time.perf_counter()
             result = solve(xy, self.flux[i][cut], *prior)
@@ -135,7 +136,8 @@ def cedar(sets: Sets) -> dict:
 
     return {
         "database": (f"default database: {props['num_patterns']} patterns, {len(solver.star_table)} stars "
-                     f"({props['star_catalog']}, mag <= {props['star_max_magnitude']:.2f}), fields "
+                     f"({props['star_catalog']}, mag <= {props['star_max_magnitude']:.2f}, epoch "
+                     f"{props['epoch_proper_motion']:g}), fields "
                      f"{props['min_fov']:g}-{props['max_fov']:g} deg"),
         "build": "loaded",
         "build_s": load_s,
@@ -149,14 +151,15 @@ def tetra3rs_peer(sets: Sets) -> dict:
     import tetra3rs
 
     start = time.perf_counter()
-    db = tetra3rs.SolverDatabase.generate_from_gaia(max_fov_deg=sets.fov_deg, epoch_proper_motion_year=2025.0)
+    db = tetra3rs.SolverDatabase.generate_from_gaia(max_fov_deg=sets.fov_deg)
     build_s = time.perf_counter() - start
     params = db.parameters
     height, width = sets.size
     centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+    prior_error_deg = float(sets.data["prior_error_deg"])
 
     def solve(xy, flux, prior=None):
-        hint = {} if prior is None else {"attitude_hint": prior, "hint_uncertainty_deg": 0.05}
+        hint = {} if prior is None else {"attitude_hint": prior, "hint_uncertainty_deg": prior_error_deg}
         return db.solve_from_centroids(np.column_stack([xy - centre, flux]), fov_estimate_deg=sets.fov_deg,
                                        image_width=width, image_height=height, **hint)
 
@@ -167,8 +170,7 @@ def tetra3rs_peer(sets: Sets) -> dict:
         catalog = unit_vectors([s.ra_deg for s in stars], [s.dec_deg for s in stars])
         return result.rotation_matrix_icrs_to_camera, (result.matched_centroids.astype(int), catalog)
 
-    track = sets.data["track"]
-    tracking = []
+    lis, track, tracking = sets.rows(solve, read, np.arange(len(sets.xy))), sets.data["track"], []
     if len(track):
         tracking = sets.rows(solve, read, track, int(sets.data["track_stars"]), sets.data["prior"][track])
     return {
@@ -177,14 +179,14 @@ def tetra3rs_peer(sets: Sets) -> dict:
         "build": "built",
         "build_s": build_s,
         "check": sets.check(solve, read),
-        "lis": sets.rows(solve, read, np.arange(len(sets.xy))),
+        "lis": lis,
         "tracking": tracking,
     }
 
 
 def main() -> None:
-    sets = Sets(sys.argv[1])
-    result = {"cedar-solve": cedar(sets), "tetra3rs": tetra3rs_peer(sets)}
+    path = sys.argv[1]
+    result = {"cedar-solve": cedar(Sets(path, "cedar")), "tetra3rs": tetra3rs_peer(Sets(path, "tetra3rs"))}
     with open(sys.argv[2], "w") as out:
         json.dump(result, out)
 

@@ -3,9 +3,10 @@
 The pipeline is vectorised (numpy / OpenCV); Python loops run only over the saddles of blobs being split and over
 the iterations of a Gaussian fit made for all stars at once.
 
-1. Local background and noise: a sigma-clipped mean and standard deviation on a grid of tiles, interpolated
-   bilinearly between the tile centres (and extrapolated linearly to the border), so stray-light gradients are
-   followed.  The clipped *mean* is used rather than a median because a median of integer DN moves in whole DN.
+1. Local background and noise on a grid of tiles: the sigma-clipped mean of the pixels (a mean, as a median of
+   integer DN moves in whole DN) and the sigma-clipped spread of differences between neighbouring pixels (blind to
+   gradients), interpolated bilinearly between the tile centres and extrapolated linearly to the border, so
+   stray-light gradients are followed.
 2. Spikes: a pixel standing far above the median of its 3 x 3 neighbourhood, further than a PSF allows (a hot pixel,
    a cosmic-ray hit or track, alone or on a star), takes that median; so do its neighbours that stand out likewise.
 3. Detection: the cleaned background-subtracted image, smoothed by a Gaussian matched to the PSF (optional), is
@@ -18,7 +19,8 @@ the iterations of a Gaussian fit made for all stars at once.
    neighbours of a blob's peak pixel must hold at least half the light (per unit peak) that a PSF centred on the
    pixel puts there; and where a blob is bright enough to tell, the pixels beside its ridge (those of at least half
    the peak), across its principal axis, must hold at least half of what a PSF puts beside its peak (a cosmic-ray
-   track is one pixel wide).
+   track is one pixel wide).  A blob that lost more light to step 2, within 1 px of it, than it holds is what is
+   left of a cosmic-ray track, and is dropped too.
 6. Centroids over the blob grown by ``window_margin_px`` (so faint wings count), in background-subtracted DN:
    ``"cog"`` the centre of gravity of the positive pixels, ``"iwcog"`` each pixel weighted by its intensity times the
    matched-filter response, ``"gaussian"`` a pixel-integrated 2-D Gaussian (flux, centre, width) fitted by
@@ -66,6 +68,7 @@ FORWARD_NEIGHBOURS = [(0, 1), (1, -1), (1, 0), (1, 1)]  # each 8-connected pixel
 
 
 def _flag(name: str, value) -> bool:
+    """``value`` as a bool, refusing anything but True or False."""
     if not isinstance(value, bool | np.bool_):
         raise ValueError(f"{name} must be True or False, got {value!r}")
     return bool(value)
@@ -116,11 +119,13 @@ class CentroidDetector:
     * ``deblend_contrast``: least rise of a maximum above its saddle, as a fraction of its height, for it to count
       as a star of its own (together with the detection threshold); 1 turns deblending off.
     * ``window_margin_px``: growth (px) of each blob for centroid and flux; None: ``ceil(2 psf_sigma_px)``.
-    * ``reject_sharp``: drop blobs sharper than the PSF (hot pixels, cosmic rays).
+    * ``reject_sharp``: clean spikes and drop blobs sharper than the PSF allows (hot pixels, cosmic rays).
     * ``keep_edge``: also report stars cut by the image border.
     * ``saturation_dn``: pixel value (DN) at and above which a pixel is saturated; None: the image's maximum when it
       is a full-scale code ``2^n - 1`` (n = 8 .. 16), else none.
     * ``max_stars``: report at most this many stars (the brightest); None: all.
+
+    The options fit a sensor: ``psf_sigma_px`` should be the head's PSF sigma (the scenario's ``psf_sigma_px``).
     """
 
     def __init__(
@@ -407,9 +412,12 @@ class CentroidDetector:
         core_flat[pixel] = compact + 1
         return int(compact.max()) + 1
 
-    def _track_remnant(self, grown: np.ndarray, n: int, removed: tuple[np.ndarray, np.ndarray], flux: np.ndarray):
-        """Mask of blobs that are what is left of a cosmic-ray track after cleaning: more light was taken off within
-        1 px of their grown region than they hold."""
+    @staticmethod
+    def _track_remnant(
+        grown: np.ndarray, n: int, removed: tuple[np.ndarray, np.ndarray], flux: np.ndarray
+    ) -> np.ndarray:
+        """Mask of the ``n`` blobs (labels in ``grown``) that are what is left of a cosmic-ray track after cleaning:
+        more light was taken off (``removed``: flat indices, DN) within 1 px of their grown region than they hold."""
         index, amount = removed
         owner = grown.ravel()[_box(index, grown.shape)].astype(np.intp)  # (9, spikes)
         pairs = np.unique(np.stack([owner.ravel(), np.tile(np.arange(len(index)), 9)]), axis=1)

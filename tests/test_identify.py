@@ -418,3 +418,23 @@ def test_identify_needs_reset_and_one_stars_per_head(lost_in_space):
     identifier, _ = lost_in_space["narrow"]
     with pytest.raises(ValueError, match="one Stars per camera"):
         identifier.identify([Stars(np.zeros((5, 2)))] * 2, [NARROW], None)
+
+
+@pytest.mark.parametrize("max_pattern_stars, least", [(4, 12), (12, 30)])
+def test_lost_in_space_from_the_five_brightest_stars(catalog, max_pattern_stars, least):
+    # Five detections make one breadth-first step: the five quads of the five, or with max_pattern_stars=4 the one
+    # quad of the four brightest, which must then be a database pattern (about half the frames).
+    identifier = LostInSpaceIdentifier(max_pattern_stars=max_pattern_stars)
+    identifier.reset([NARROW], catalog)
+    rng = np.random.default_rng(19)
+    frames = identified = 0
+    while frames < 40:
+        stars, truth = scene([NARROW], catalog, Rotation.random(random_state=rng), rng)
+        if len(stars[0]) < 5:
+            continue
+        keep = np.argsort(-stars[0].flux)[:5]
+        ids = identifier.identify([Stars(stars[0].xy[keep], stars[0].flux[keep])], [NARROW], None)[0].catalog_id
+        assert np.all((ids == -1) | (ids == truth[0][keep]))
+        frames += 1
+        identified += np.array_equal(ids, truth[0][keep])
+    assert identified >= least

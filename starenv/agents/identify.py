@@ -31,7 +31,8 @@ Lost in space (:class:`LostInSpaceIdentifier`)
     one matching most detections wins.  Matching and refining the attitude then alternate, the search widened by the
     attitude's uncertainty (a pattern in one small field leaves the roll about it loose, which moves the stars of the
     other heads), and every detection within the match radius of a catalogue star is labelled (one detection a star,
-    the closest).
+    the closest).  Verifying and refining compare the detections with the database stars of a cone about each head's
+    boresight, by brute force (both sets are small), rather than through the k-d tree of the whole sky.
 
 Tracking (:class:`TrackingIdentifier`)
     With a prior attitude (inertial -> body), the catalogue stars near each head's boresight (a cone query) are
@@ -48,6 +49,7 @@ Ids are HIP numbers; -1 marks a detection left unidentified.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import hashlib
 import itertools
@@ -58,6 +60,7 @@ import warnings
 import zipfile
 from dataclasses import astuple, dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -84,8 +87,15 @@ _MAX_BINS = 1000  # ratio bins per dimension at most (keys stay within int64)
 
 _EDGE_FROM, _EDGE_TO = np.triu_indices(4, 1)  # the six edges of a pattern: 01, 02, 03, 12, 13, 23
 _STAR_ORDERS = np.array(list(itertools.permutations(range(4))))  # (24, 4)
+_EDGE_OF = np.zeros((4, 4), dtype=np.intp)  # edge number of a star pair
+_EDGE_OF[_EDGE_FROM, _EDGE_TO] = _EDGE_OF[_EDGE_TO, _EDGE_FROM] = np.arange(6)
+_ORDER_EDGES = _EDGE_OF[_STAR_ORDERS[:, _EDGE_FROM], _STAR_ORDERS[:, _EDGE_TO]]  # (24, 6) edges of a reordered pattern
 _TABLES = ("patterns", "keys", "largest_edge")  # the database arrays, in the order build_patterns returns them
-_BIN_STEPS = np.array(list(itertools.product((0, 1), repeat=5)))  # (32, 5) lower bin or the one above, per ratio
+_BIN_STEPS = (np.arange(32)[:, None] >> np.arange(5)) & 1  # (32, 5): step s probes the bin above for the set bits of s
+_PROBES = np.all(_BIN_STEPS[None] <= _BIN_STEPS[:, None], axis=2)  # (32, 32): [w, s] step s within the bits w
+_BITS = 1 << np.arange(5)  # bit of each ratio in a bin step
+_SIGNS = np.array([-1.0, 1.0])[:, None, None]
+_IDENTITY = np.eye(3)
 
 
 def _chord(angle_rad: float) -> float:
@@ -101,8 +111,8 @@ def _pattern_edges(vectors: np.ndarray) -> np.ndarray:
 
 def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
     """Attitude matrices (..., 3, 3), inertial -> body, minimising sum |b - A r|^2 over pairs (..., n, 3) (SVD)."""
-    u, _, vt = np.linalg.svd(np.einsum("...ni,...nj->...ij", body, inertial))
-    u[..., :, 2] *= (np.linalg.det(u) * np.linalg.det(vt))[..., None]
+    u, _, vt = np.linalg.svd(np.swapaxes(body, -1, -2) @ inertial)
+    u[..., :, 2] *= np.linalg.det(u @ vt)[..., None]
     return u @ vt
 
 
@@ -165,7 +175,7 @@ class PatternDatabase:
     into them, ``keys`` (p,) int64 sorted and ``largest_edge`` (p,) float32 the largest pairwise angle of each pattern
     (rad).  ``path`` is the cache file and ``from_cache`` says whether it was read from it rather than built.
     ``match_rows`` are the stars detections are matched to (none within the merge separation of a brighter star),
-    ``tree`` their k-d tree.
+    ``match_unit`` their unit vectors and ``tree`` their k-d tree.
     """
 
     settings: DatabaseSettings
@@ -178,12 +188,14 @@ class PatternDatabase:
     path: Path
     from_cache: bool
     match_rows: np.ndarray = field(init=False, repr=False)
+    match_unit: np.ndarray = field(init=False, repr=False)
     tree: cKDTree = field(init=False, repr=False)
 
     def __post_init__(self):
         rows = np.flatnonzero(resolvable(self.unit, self.magnitude, self.settings.merge_rad))
         object.__setattr__(self, "match_rows", rows)
-        object.__setattr__(self, "tree", cKDTree(self.unit[rows]))
+        object.__setattr__(self, "match_unit", self.unit[rows])
+        object.__setattr__(self, "tree", cKDTree(self.match_unit))
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -339,6 +351,19 @@ def field_mag_limit(cameras: list[Camera], magnitudes: np.ndarray, stars_per_fie
     return faintest
 
 
+class _Frame(NamedTuple):
+    """The detections of one identification: pooled body-frame unit vectors (n, 3), their match radius (rad), its
+    square and largest value, and per head with detections its boresight ``axes`` (h, 3) and the chord of a cone
+    about it that holds every database star a detection can be matched to while growing a hypothesis."""
+
+    body: np.ndarray
+    radius: np.ndarray
+    radius2: np.ndarray
+    max_radius: float
+    axes: np.ndarray
+    chords: np.ndarray
+
+
 class LostInSpaceIdentifier:
     """Identification without a prior attitude by Tetra 4-star pattern hashing (see the module docstring).
 
@@ -366,7 +391,10 @@ class LostInSpaceIdentifier:
         self.match_radius_px = checks.in_range("match_radius_px", match_radius_px, 0.0, 100.0, low_open=True)
         self.match_threshold = checks.in_range("match_threshold", match_threshold, 0.0, 1.0, low_open=True)
         self.max_pattern_stars = checks.integer("max_pattern_stars", max_pattern_stars, 4, 30)
-        self._quad_steps = _breadth_first_quads(self.max_pattern_stars)
+        self._quad_steps = [  # per step: its quads, their edges as star pairs, the largest star of each
+            (step, (step[:, _EDGE_FROM], step[:, _EDGE_TO]), step.max(axis=1).tolist())
+            for step in _breadth_first_quads(self.max_pattern_stars)
+        ]
         self.database: PatternDatabase | None = None
 
     def settings_for(self, cameras: list[Camera], catalog: StarCatalog) -> DatabaseSettings:
@@ -394,6 +422,10 @@ class LostInSpaceIdentifier:
         self.database = load_database(catalog, settings)
         rows = np.flatnonzero(resolvable(catalog.unit, catalog.magnitude, settings.merge_rad))
         self._label_tree, self._label_hip = cKDTree(catalog.unit[rows]), catalog.hip[rows]
+        self._bins = settings.bins
+        self._digits = np.int64(self._bins) ** np.arange(5, dtype=np.int64)  # key = bin numbers @ digits
+        step_keys = _BIN_STEPS @ self._digits
+        self._probe_keys = np.stack([step_keys, step_keys + 1])  # per bin step: its key offset and the next one
 
     def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None = None) -> list[Stars]:
         """Label all heads' detections with HIP numbers (-1: unidentified); ``prior`` is not used."""
@@ -401,132 +433,190 @@ class LostInSpaceIdentifier:
             raise RuntimeError("call reset(cameras, catalog) before identify")
         body, heads = _body_vectors(stars, cameras)
         ids = np.full(len(body), -1, dtype=np.int64)
-        pixel_rad = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])
-        radius, noise = self.match_radius_px * pixel_rad[heads], self.centroid_noise_px * pixel_rad[heads]
-        boresights = np.stack([cam.mounting.as_matrix()[2] for cam in cameras])[np.unique(heads)]
-        first_rows = np.cumsum([0] + [len(s) for s in stars[:-1]])
-        brightest = [  # per head, pooled rows of its brightest detections, brightest first
-            first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
-            for s, first in zip(stars, first_rows, strict=True)
-        ]
-        for step in self._quad_steps:
-            quads = np.concatenate([order[step[np.all(step < len(order), axis=1)]] for order in brightest])
-            if len(quads) == 0:
-                break
-            attitude = self._best_hypothesis(body, quads, radius, boresights)
+        if any(len(s) >= 4 for s in stars):
+            frame = self._frame(body, heads, stars, cameras)
+            attitude = self._solve(frame, stars)
             if attitude is not None:
-                matched, rows = self._grow(body, attitude, radius, noise)
-                refined = _wahba(body[matched], self.database.unit[rows])
-                labelled, stars_hit = _closest_pairs(self._label_tree, body @ refined, radius)
+                distance, nearest = self._label_tree.query(body @ attitude, distance_upper_bound=frame.max_radius)
+                labelled, stars_hit = _closest_per_star((distance <= frame.radius).nonzero()[0], nearest, distance)
                 ids[labelled] = self._label_hip[stars_hit]
-                break
         return _labelled(stars, ids)
 
+    def _frame(self, body: np.ndarray, heads: np.ndarray, stars: list[Stars], cameras: list[Camera]) -> _Frame:
+        """The detections of one call with their match radii and search cones (see :class:`_Frame`)."""
+        pixel_rad = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])[heads]
+        radius = self.match_radius_px * pixel_rad
+        max_radius = float(radius.max())
+        axes, chords, first = [], [], 0
+        for s, cam in zip(stars, cameras, strict=True):
+            if len(s):
+                axis = cam.mounting.as_matrix()[2]
+                reach = math.acos(min(float((body[first : first + len(s)] @ axis).min()), 1.0))
+                axes.append(axis)
+                chords.append(_chord(max(reach + 2.0 * _GROW_MAX * max_radius, self.database.settings.fov_rad / 2.0)))
+            first += len(s)
+        return _Frame(body, radius, radius**2, max_radius, np.array(axes), np.array(chords))
+
+    def _solve(self, frame: _Frame, stars: list[Stars]) -> np.ndarray | None:
+        """The attitude (3, 3), inertial -> body, from the verified hypothesis of the first breadth-first step that
+        has any, grown and refined (:meth:`_grow`); None if no step has one."""
+        heads, first = [], 0
+        for s in stars:  # per head, pooled rows of its brightest detections (brightest first) and their angles
+            rows = first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
+            vectors = frame.body[rows]
+            heads.append((rows, np.arccos(np.minimum(vectors @ vectors.T, 1.0))))
+            first += len(s)
+        for step, (edge_from, edge_to), last in self._quad_steps:
+            quads, edges = [], []
+            for rows, angles in heads:
+                count = bisect.bisect_left(last, len(rows))  # the quads within this head's stars
+                quads.append(rows[step[:count]])
+                edges.append(angles[edge_from[:count], edge_to[:count]])
+            quads, edges = np.concatenate(quads), np.concatenate(edges)
+            if len(quads) == 0:
+                return None
+            hypothesis = self._best_hypothesis(frame, quads, edges)
+            if hypothesis is not None:
+                return self._grow(frame, *hypothesis)
+        return None
+
+    def _candidates(self, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(quad, catalogue star rows (k, 4) in the quad's star order) for the catalogue patterns matching quads of
+        edges ``edges`` (q, 6)."""
+        db = self.database
+        settings, bins = db.settings, self._bins
+        tolerance = settings.edge_tolerance_rad
+        ordered = np.sort(edges, axis=1)
+        largest = ordered[:, 5:]
+        ratios = ordered[:, :5] / largest
+        bounds = np.floor((ratios + _SIGNS * ((ratios + 1.0) * (tolerance / largest))) * bins)  # bins of ratio -+ tol
+        low = np.maximum(bounds[0], 0.0)
+        probed = _PROBES[(np.minimum(bounds[1], bins - 1.0) > low) @ _BITS]  # (q, 32) bin steps probed
+        owner, step = (probed & (ordered[:, :1] >= settings.blend_rad)).nonzero()
+        first, end = db.keys.searchsorted((low.astype(np.int64) @ self._digits)[owner] + self._probe_keys[:, step])
+        count = end - first
+        total = count.sum()
+        if total == 0:
+            return owner[:0], db.patterns[:0]
+        pattern = (first - count.cumsum() + count).repeat(count) + np.arange(total)
+        quad_of = owner.repeat(count)
+        # The largest edge matches (which also keeps the quads to the database's range of largest edges) ...
+        same_scale = (np.abs(db.largest_edge[pattern] - largest[quad_of, 0]) <= tolerance).nonzero()[0]
+        quad_of, catalog_rows = quad_of[same_scale], db.patterns[pattern[same_scale]]
+        # ... and then all six edges, under one of the 24 star orders.
+        vectors = db.unit[catalog_rows]
+        catalog_edges = np.arccos(np.minimum((vectors @ vectors.transpose(0, 2, 1))[:, _EDGE_FROM, _EDGE_TO], 1.0))
+        miss = np.abs(catalog_edges[:, _ORDER_EDGES] - edges[quad_of, None, :]).max(axis=2)  # (k, 24)
+        close = (miss.min(axis=1) <= tolerance).nonzero()[0]
+        return quad_of[close], catalog_rows[close[:, None], _STAR_ORDERS[miss[close].argmin(axis=1)]]
+
+    def _best_hypothesis(self, frame: _Frame, quads: np.ndarray, edges: np.ndarray) -> tuple | None:
+        """The verified hypothesis matching most detections among those of the quads (pooled rows (q, 4)) of edges
+        ``edges`` (q, 6), or None; a hypothesis is (attitude (3, 3), the database stars about it (:meth:`_nearby`),
+        its matched detections and their match rows)."""
+        db = self.database
+        quad_of, catalog_rows = self._candidates(edges)
+        if len(quad_of) == 0:
+            return None
+        detections = quads[quad_of]  # (k, 4)
+        pattern_body, catalog = frame.body[detections], db.unit[catalog_rows]
+        attitudes = _wahba(pattern_body, catalog)
+        miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
+        half_field = db.settings.fov_rad / 2.0
+        area = math.pi * frame.max_radius**2 / (2.0 * math.pi * (1.0 - math.cos(half_field)))
+        best, best_count = None, 0
+        for attitude in attitudes[(miss <= frame.radius2[detections]).all(axis=1)]:
+            if best is not None and np.vdot(attitude, best[0]) > 3.0 - _SAME_ATTITUDE_TRACE:
+                continue  # the same solution from another pattern
+            nearby = self._nearby(frame, attitude)
+            star, squared = self._closest(frame, attitude, nearby)
+            matched, rows = _closest_per_star((squared <= frame.radius2).nonzero()[0], star, squared)
+            m = len(matched)
+            if m <= best_count:
+                continue
+            in_field = ((nearby[2] @ (frame.axes @ attitude).T) >= math.cos(half_field)).sum(axis=0).max()
+            if m >= 3 and bdtrc(m - 3, len(frame.body), min(in_field * area, 1.0)) < self.match_threshold:
+                best, best_count = (attitude, nearby, matched, rows), m
+        return best
+
     def _grow(
-        self, body: np.ndarray, attitude: np.ndarray, radius: np.ndarray, noise: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Matches (detections, catalogue rows) of a verified hypothesis ``attitude`` (3, 3), inertial -> body.
+        self, frame: _Frame, attitude: np.ndarray, nearby: tuple, matched: np.ndarray, rows: np.ndarray
+    ) -> np.ndarray:
+        """The attitude (3, 3), inertial -> body, refined on all matches of a verified hypothesis ``attitude``
+        (``nearby``: the database stars about it, ``matched``, ``rows``: its matches).
 
         A hypothesis from one head's pattern leaves the roll about that head poorly known, which shifts the stars of
         other heads by more than the match radius; so matching alternates with refining the attitude, each detection
         searched within its match radius widened by 3 sigma of its predicted direction under the attitude's
-        covariance (``noise``: each detection's 1-sigma direction noise, rad), up to ``_GROW_MAX`` match radii, until
-        the matches stop changing.  The last matching uses the plain match radius.
+        covariance (:meth:`_widened2`), until the matches stop changing.  The last matching uses the plain match
+        radius.
         """
-        matched, rows = self._matches(body, attitude, radius)
+        body, unit = frame.body, self.database.match_unit
         for _ in range(_GROW_STEPS):
-            attitude = _wahba(body[matched], self.database.unit[rows])
-            b, weight = body[matched], noise[matched] ** -2.0
-            information = weight.sum() * np.eye(3) - np.einsum("n,ni,nj->ij", weight, b, b)
-            covariance = np.linalg.inv(information)  # rad^2, about body axes
-            spread = np.trace(covariance) - np.einsum("ni,ij,nj->n", body, covariance, body)
-            widened = np.minimum(np.sqrt(radius**2 + 9.0 * np.maximum(spread, 0.0)), _GROW_MAX * radius)
-            grown, grown_rows = self._matches(body, attitude, widened)
-            if np.array_equal(grown, matched) and np.array_equal(grown_rows, rows):
+            attitude = _wahba(body[matched], unit[rows])
+            nearby = self._nearby(frame, attitude, nearby)
+            star, squared = self._closest(frame, attitude, nearby)
+            within = squared <= frame.radius2
+            final = _closest_per_star(within.nonzero()[0], star, squared)
+            grown = final
+            if ((squared <= _GROW_MAX**2 * frame.radius2) > within).any():  # else no widened radius matters
+                grown = _closest_per_star((squared <= self._widened2(frame, matched)).nonzero()[0], star, squared)
+            if _same_matches(grown, (matched, rows)):
                 break
-            matched, rows = grown, grown_rows
-        return self._matches(body, _wahba(body[matched], self.database.unit[rows]), radius)
+            matched, rows = grown
+        else:
+            attitude = _wahba(body[matched], unit[rows])
+            star, squared = self._closest(frame, attitude, self._nearby(frame, attitude, nearby))
+            final = _closest_per_star((squared <= frame.radius2).nonzero()[0], star, squared)
+        return attitude if _same_matches(final, (matched, rows)) else _wahba(body[final[0]], unit[final[1]])
 
-    def _candidates(self, quad_vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(quad, catalogue star rows (k, 4) in the quad's star order) for the catalogue patterns matching the quads."""
-        db = self.database
-        settings = db.settings
-        tolerance = settings.edge_tolerance_rad
-        edges = _pattern_edges(quad_vectors)  # (q, 6)
-        ordered = np.sort(edges, axis=1)
-        largest = ordered[:, 5]
-        fits = (largest <= settings.fov_rad + tolerance) & (largest >= settings.min_edge_rad - tolerance)
-        fits &= ordered[:, 0] >= settings.blend_rad
-        quad_index = np.flatnonzero(fits)
-        ratios = ordered[fits, :5] / largest[fits, None]
-        ratio_tolerance = tolerance * (1.0 + ratios) / largest[fits, None]
-        bins = settings.bins
-        low = np.clip(np.floor((ratios - ratio_tolerance) * bins).astype(np.int64), 0, bins - 1)
-        high = np.clip(np.floor((ratios + ratio_tolerance) * bins).astype(np.int64), 0, bins - 1)
-        steps_ok = np.all(_BIN_STEPS[None] <= (high - low)[:, None, :], axis=2)  # (q, 32)
-        keys = _bins_to_keys(low[:, None, :] + _BIN_STEPS[None], bins)
-        owner, step = np.nonzero(steps_ok)
-        keys = keys[owner, step]
-        first = np.searchsorted(db.keys, keys, side="left")
-        count = np.searchsorted(db.keys, keys, side="right") - first
-        owner = np.repeat(owner, count)
-        pattern = np.repeat(first - np.cumsum(count) + count, count) + np.arange(count.sum())
-        quad_of = quad_index[owner]
-        same_scale = np.abs(db.largest_edge[pattern] - largest[quad_of]) <= tolerance
-        quad_of, catalog_rows = quad_of[same_scale], db.patterns[pattern[same_scale]]
-        catalog_ordered = np.sort(_pattern_edges(db.unit[catalog_rows]), axis=1)
-        same_edges = np.all(np.abs(catalog_ordered - ordered[quad_of]) <= tolerance, axis=1)
-        quad_of, catalog_rows = quad_of[same_edges], catalog_rows[same_edges]
-        orders = catalog_rows[:, _STAR_ORDERS]  # (k, 24, 4)
-        miss = np.max(np.abs(_pattern_edges(db.unit[orders]) - edges[quad_of, None, :]), axis=2)  # (k, 24)
-        best = np.argmin(miss, axis=1)
-        close = miss[np.arange(len(best)), best] <= tolerance
-        return quad_of[close], orders[close, best[close]]
+    def _widened2(self, frame: _Frame, matched: np.ndarray) -> np.ndarray:
+        """Squared search radii (n,): each detection's match radius widened by 3 sigma of its predicted direction
+        under the covariance of an attitude fitted on the ``matched`` detections, up to ``_GROW_MAX`` match radii."""
+        b = frame.body[matched]
+        weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2[matched]  # noise ** -2
+        covariance = np.linalg.inv(weight.sum() * _IDENTITY - (b.T * weight) @ b)  # rad^2, about body axes
+        spread = covariance.trace() - ((frame.body @ covariance) * frame.body).sum(axis=1)
+        return np.minimum(frame.radius2 + 9.0 * np.maximum(spread, 0.0), _GROW_MAX**2 * frame.radius2)
 
-    def _best_hypothesis(
-        self, body: np.ndarray, quads: np.ndarray, radius: np.ndarray, boresights: np.ndarray
-    ) -> np.ndarray | None:
-        """The verified attitude (3, 3) matching most detections among the quads' hypotheses, or None."""
-        db = self.database
-        quad_of, catalog_rows = self._candidates(body[quads])
-        if len(quad_of) == 0:
-            return None
-        pattern_body = body[quads[quad_of]]  # (k, 4, 3)
-        attitudes = _wahba(pattern_body, db.unit[catalog_rows])
-        predicted = np.einsum("kij,knj->kni", attitudes, db.unit[catalog_rows])
-        fit = np.all(np.linalg.norm(predicted - pattern_body, axis=2) <= radius[quads[quad_of]], axis=1)
-        best, best_count = None, 0
-        field_radius = db.settings.fov_rad / 2.0
-        cap = 2.0 * math.pi * (1.0 - math.cos(field_radius))
-        for attitude in attitudes[fit]:
-            if best is not None and np.trace(attitude @ best.T) > 3.0 - _SAME_ATTITUDE_TRACE:
-                continue  # the same solution from another pattern
-            matched, _ = self._matches(body, attitude, radius)
-            m = len(matched)
-            if m <= best_count:
-                continue
-            nearby = db.tree.query_ball_point(boresights @ attitude, _chord(field_radius), return_length=True)
-            p_single = float(np.max(nearby)) / cap * math.pi * float(np.max(radius)) ** 2
-            if m >= 3 and bdtrc(m - 3, len(body), min(p_single, 1.0)) < self.match_threshold:
-                best, best_count = attitude, m
-        return best
+    def _nearby(self, frame: _Frame, attitude: np.ndarray, known: tuple | None = None) -> tuple:
+        """(attitude, match rows, inertial unit vectors (s, 3)) of the database stars in ``frame``'s cones under
+        ``attitude``; ``known`` itself if it was made for an attitude within ``_GROW_MAX`` match radii of this one,
+        as it then holds every star a detection may be matched to."""
+        if known is not None and np.vdot(known[0], attitude) >= 1.0 + 2.0 * math.cos(_GROW_MAX * frame.max_radius):
+            return known  # trace(A B^T) = 1 + 2 cos(angle between A and B)
+        found = self.database.tree.query_ball_point(frame.axes @ attitude, frame.chords, return_sorted=False)
+        if len(found) == 1:
+            rows = np.array(found[0], dtype=np.intp)
+        else:  # the cones may overlap
+            rows = np.unique(np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp))
+        return attitude, rows, self.database.match_unit[rows]
 
-    def _matches(self, body: np.ndarray, attitude: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Detections (rows of ``body``) within ``radius`` of a database star under ``attitude``, and those stars'
-        catalogue rows; each star keeps only its closest detection."""
-        matched, nearest = _closest_pairs(self.database.tree, body @ attitude, radius)
-        return matched, self.database.match_rows[nearest]
+    def _closest(self, frame: _Frame, attitude: np.ndarray, nearby: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """Per detection, the nearest database star of ``nearby`` under ``attitude`` (match row) and the squared
+        distance to it (inf when there is none)."""
+        _, rows, unit = nearby
+        if len(rows) == 0:
+            return np.zeros(len(frame.body), dtype=np.intp), np.full(len(frame.body), np.inf)
+        squared = 2.0 - 2.0 * (frame.body @ (attitude @ unit.T))  # (n, s) squared distances of unit vectors
+        return rows[squared.argmin(axis=1)], squared.min(axis=1)
 
 
-def _closest_pairs(tree: cKDTree, directions: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of ``directions`` (inertial unit vectors) within ``radius`` (rad, per row) of a point of ``tree``, and
-    those points' indices; a point paired with several rows keeps only the closest."""
-    distance, nearest = tree.query(directions, distance_upper_bound=float(np.max(radius)))
-    matched = np.flatnonzero(distance <= radius)
-    matched = matched[np.argsort(distance[matched], kind="stable")]
-    _, first = np.unique(nearest[matched], return_index=True)
-    matched = np.sort(matched[first])
-    return matched, nearest[matched]
+def _closest_per_star(rows: np.ndarray, star: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``rows`` (ascending) and their stars, of rows paired with star ``star[row]`` at ``distance[row]`` (arrays over
+    all rows); a star paired with several rows keeps only the closest."""
+    stars = star[rows]
+    if len(set(stars.tolist())) < len(stars):
+        order = np.argsort(distance[rows], kind="stable")
+        _, first = np.unique(stars[order], return_index=True)
+        keep = np.sort(order[first])
+        rows, stars = rows[keep], stars[keep]
+    return rows, stars
+
+
+def _same_matches(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether two matchings (detections, star rows) are the same."""
+    return a[0].tolist() == b[0].tolist() and a[1].tolist() == b[1].tolist()
 
 
 class TrackingIdentifier:

@@ -188,27 +188,29 @@ def _read_disk_cache(file: Path, size: int, mtime_ns: int) -> HipparcosTable | N
         return None
 
 
-def _write_disk_cache(file: Path, table: HipparcosTable, size: int, mtime_ns: int) -> None:
-    """Store ``table`` in ``file`` atomically; a failure to write only warns."""
+def save_npz_atomic(file: Path, arrays: dict[str, np.ndarray], what: str) -> None:
+    """Write ``arrays`` to ``file`` (.npz) under a temporary name, then ``os.replace`` it into place, so a reader
+    never sees half a file; a cache that cannot be written only warns (``what`` names it)."""
     try:
         file.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(prefix=file.name + ".", suffix=".tmp", dir=file.parent)
         try:
             with os.fdopen(handle, "wb") as out:
-                np.savez(
-                    out,
-                    format=np.int64(_CACHE_FORMAT),
-                    source_size=np.int64(size),
-                    source_mtime_ns=np.int64(mtime_ns),
-                    **{field.name: getattr(table, field.name) for field in fields(table)},
-                )
+                np.savez(out, **arrays)
             os.replace(temporary, file)
         except BaseException:
             with contextlib.suppress(OSError):
                 os.unlink(temporary)
             raise
     except OSError as exc:
-        warnings.warn(f"could not write the star catalogue cache {file}: {exc}", RuntimeWarning, stacklevel=4)
+        warnings.warn(f"could not write the {what} cache {file}: {exc}", RuntimeWarning, stacklevel=3)
+
+
+def _write_disk_cache(file: Path, table: HipparcosTable, size: int, mtime_ns: int) -> None:
+    """Store ``table`` in ``file`` with the source's size and modification time."""
+    arrays = {field.name: getattr(table, field.name) for field in fields(table)}
+    stamp = {"format": np.int64(_CACHE_FORMAT), "source_size": np.int64(size), "source_mtime_ns": np.int64(mtime_ns)}
+    save_npz_atomic(file, stamp | arrays, "star catalogue")
 
 
 @functools.lru_cache(maxsize=4)

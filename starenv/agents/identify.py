@@ -50,13 +50,9 @@ Ids are HIP numbers; -1 marks a detection left unidentified.
 from __future__ import annotations
 
 import bisect
-import contextlib
 import hashlib
 import itertools
 import math
-import os
-import tempfile
-import warnings
 import zipfile
 from dataclasses import astuple, dataclass, field
 from pathlib import Path
@@ -71,7 +67,7 @@ from scipy.special import bdtrc
 from starenv import checks
 from starenv.agents.base import Identifier, Stars
 from starenv.optics import Camera
-from starenv.sky import StarCatalog, cache_dir
+from starenv.sky import StarCatalog, cache_dir, save_npz_atomic
 
 METHOD_VERSION = 1  # bump when the database layout or its construction changes
 _N_SIGMA = 3.0  # edge tolerance in standard deviations of an edge's angle
@@ -297,20 +293,9 @@ def _read_database(file: Path, identity: str, n_stars: int) -> tuple[np.ndarray,
 
 
 def _write_database(file: Path, identity: str, tables: tuple[np.ndarray, ...]) -> None:
-    """Store the database atomically (temporary file, then ``os.replace``); a failure to write only warns."""
-    try:
-        file.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(prefix=file.name + ".", suffix=".tmp", dir=file.parent)
-        try:
-            with os.fdopen(handle, "wb") as out:
-                np.savez(out, identity=np.str_(identity), **dict(zip(_TABLES, tables, strict=True)))
-            os.replace(temporary, file)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(temporary)
-            raise
-    except OSError as exc:
-        warnings.warn(f"could not write the pattern database cache {file}: {exc}", RuntimeWarning, stacklevel=3)
+    """Store the database atomically; a failure to write only warns."""
+    arrays = {"identity": np.str_(identity), **dict(zip(_TABLES, tables, strict=True))}
+    save_npz_atomic(file, arrays, "pattern database")
 
 
 def load_database(catalog: StarCatalog, settings: DatabaseSettings) -> PatternDatabase:

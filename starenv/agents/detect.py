@@ -387,6 +387,13 @@ class CentroidDetector:
             i, j = i[top[i] != top[j]], j[top[i] != top[j]]
             pairs.append(np.column_stack([top[i], top[j], np.minimum(value[pixel[i]], value[pixel[j]])]))
         pairs = np.concatenate(pairs)
+        # Only the highest saddle between two basins can join them: a lower one would ask the lower peak to rise
+        # less above a lower point.  Keep that one per pair of basins.
+        low_basin, high_basin = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+        key = low_basin * len(pixel) + high_basin
+        order = np.lexsort((-pairs[:, 2], key))
+        _, first = np.unique(key[order], return_index=True)
+        pairs = pairs[order[first]]
         height_at = value[pixel]
         rise_needed = np.maximum(limit.ravel()[pixel], self.deblend_contrast * height_at)
         basin = np.arange(len(pixel))

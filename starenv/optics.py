@@ -43,17 +43,23 @@ class Distortion:
         return _newton_inverse(lambda p: self.distort(p, k), xy)
 
 
-def _newton_inverse(forward, target: np.ndarray, tol_px: float = 1e-9, max_iter: int = 50) -> np.ndarray:
-    """Solve ``forward(p) = target`` per point by Newton's method with a central-difference 2x2 Jacobian."""
+def _central_jacobian(forward, p: np.ndarray, h: float = 1e-4) -> tuple[np.ndarray, np.ndarray]:
+    """Columns d forward / dx and d forward / dy (each (n, 2)) by central differences."""
+    jx = (forward(p + [h, 0.0]) - forward(p - [h, 0.0])) / (2 * h)
+    jy = (forward(p + [0.0, h]) - forward(p - [0.0, h])) / (2 * h)
+    return jx, jy
+
+
+def _newton_inverse(forward, target: np.ndarray, jacobian=None, tol_px: float = 1e-9, max_iter: int = 50) -> np.ndarray:
+    """Solve ``forward(p) = target`` per point by Newton's method; ``jacobian(p)`` gives the columns
+    (d/dx, d/dy) of forward's 2x2 Jacobian (central differences when None)."""
     target = np.asarray(target, dtype=np.float64)
     p = target.copy()
-    h = 1e-4
     for _ in range(max_iter):
         r = forward(p) - target
         if np.all(np.abs(r) < tol_px):
             return p
-        jx = (forward(p + [h, 0.0]) - forward(p - [h, 0.0])) / (2 * h)
-        jy = (forward(p + [0.0, h]) - forward(p - [0.0, h])) / (2 * h)
+        jx, jy = jacobian(p) if jacobian is not None else _central_jacobian(forward, p)
         det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
         if np.any(np.abs(det) < 1e-12):
             break
@@ -129,10 +135,26 @@ class RadialXY(Distortion):
 
     def undistort(self, xy, k):
         xy = np.asarray(xy, dtype=np.float64)
-        x0, y0 = self.center if self.center is not None else (k.cx, k.cy)
+        x0, y0 = self._centre(k)
         dx, dy = xy[:, 0] - x0, xy[:, 1] - y0
         r2 = dx * dx + dy * dy
         return np.stack([x0 + dx * (1 + self.kx * r2), y0 + dy * (1 + self.ky * r2)], axis=1)
+
+    def distort(self, xy, k):
+        return _newton_inverse(lambda p: self.undistort(p, k), xy, lambda p: self._undistort_jacobian(p, k))
+
+    def _centre(self, k: Intrinsics) -> tuple[float, float]:
+        return self.center if self.center is not None else (k.cx, k.cy)
+
+    def _undistort_jacobian(self, xy: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """Columns d(undistort)/dx and d(undistort)/dy, each (n, 2), in closed form."""
+        x0, y0 = self._centre(k)
+        dx, dy = xy[:, 0] - x0, xy[:, 1] - y0
+        r2 = dx * dx + dy * dy
+        cross = 2 * dx * dy
+        jx = np.stack([1 + self.kx * (r2 + 2 * dx * dx), self.ky * cross], axis=1)
+        jy = np.stack([self.kx * cross, 1 + self.ky * (r2 + 2 * dy * dy)], axis=1)
+        return jx, jy
 
 
 def legendre_mode_count(order: int) -> int:

@@ -169,3 +169,15 @@ def test_behind_the_camera_is_masked():
     xy, front = seed_000_camera().project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))
     assert front.tolist() == [False, True]
     assert np.isnan(xy[0]).all()
+
+
+def test_radial_xy_closed_form_jacobian_matches_central_differences():
+    from starenv.optics import _central_jacobian
+
+    model = RadialXY(kx=3e-7, ky=-2e-7, center=(250.0, 260.0))
+    k = seed_000_camera(model).intrinsics
+    pts = np.random.default_rng(3).uniform(0, 511, (20, 2))
+    exact = model._undistort_jacobian(pts, k)
+    numeric = _central_jacobian(lambda p: model.undistort(p, k), pts)
+    for a, b in zip(exact, numeric, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-8)

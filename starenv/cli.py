@@ -68,10 +68,9 @@ def _agents(pairs: list[str]) -> dict[str, str]:
 
 
 def cmd_run(args) -> int:
-    import time
-
     from starenv.env import StarSensorEnv
-    from starenv.scoring import flatten, summarize
+    from starenv.episode import run_episode
+    from starenv.scoring import summarize
 
     env = StarSensorEnv(args.scenario, _overrides(args.set))
     pipeline = None
@@ -80,22 +79,8 @@ def cmd_run(args) -> int:
 
         pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent))
     sc = env.scenario
-    steps = sc.n_steps - 1 if args.steps is None else args.steps
-    obs, info = env.reset(seed=sc.seed if args.seed is None else args.seed)
-    if pipeline is not None:
-        pipeline.reset(env)
-    records, dropped, lost_at = [], np.zeros(len(sc.heads), dtype=int), None
-    t0 = time.perf_counter()
-    for k in range(steps):
-        dropped += np.array(info["truth"]["dropped"], dtype=int)
-        action = pipeline(obs) if pipeline is not None else None
-        obs, _, terminated, truncated, info = env.step(action)
-        records.append(flatten(info["scores"], pipeline.latency_s if pipeline is not None else None))
-        if terminated and lost_at is None:
-            lost_at = k
-        if truncated:
-            break
-    wall = time.perf_counter() - t0
+    result = run_episode(env, pipeline, seed=args.seed, steps=args.steps)
+    records, wall, dropped, lost_at = result.records, result.wall_s, result.dropped, result.lost_at
     summary = summarize(records)
     print(f"{sc.name}: {sc.description}")
     print(f"  {len(records)} steps ({len(records) / sc.frame_rate_hz:.2f} s simulated) in {wall:.2f} s wall; "

@@ -1,0 +1,98 @@
+"""One episode of a scenario driven by a pipeline, step by step, with observers (recorders) watching each step.
+
+``run_episode`` is the loop every front end shares (``starenv run``, the benchmark runner, recorders): per step ``k``
+the pipeline turns observation ``k`` into an action, ``env.step`` scores it against frame ``k``'s truth, and each
+observer receives a :class:`StepLog` that holds frame ``k``, its truth, the action and its scores together.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from starenv.scoring import flatten
+
+
+@dataclass
+class StepLog:
+    """Everything about step ``index``: observation ``k`` (what the sensor delivered), the truth of that frame, the
+    pipeline's action for it (None without a pipeline), its scores (``info["scores"]``) and the flat score record."""
+
+    index: int
+    obs: dict
+    truth: dict
+    action: dict | None
+    scores: dict
+    record: dict[str, float | None]
+    source: str  # where the attitude came from: "solved", "predicted" or "none"
+    latency_s: dict[str, float]
+    pipeline: Any = None
+
+
+class Observer(Protocol):
+    """Watches an episode: ``start`` once, ``step`` per scored step, ``close`` at the end (also after an error)."""
+
+    def start(self, env, seed: int, pipeline) -> None: ...
+
+    def step(self, log: StepLog) -> None: ...
+
+    def close(self, error: BaseException | None = None) -> None: ...
+
+
+@dataclass
+class EpisodeResult:
+    """Per-step flat score records, frames dropped per head, the step at which the lost rule fired, wall time (s)."""
+
+    records: list[dict] = field(default_factory=list)
+    dropped: np.ndarray | None = None
+    lost_at: int | None = None
+    wall_s: float = 0.0
+
+
+def run_episode(env, pipeline=None, seed: int | None = None, steps: int | None = None,
+                observers: tuple[Observer, ...] | list[Observer] = ()) -> EpisodeResult:
+    """Run ``steps`` scored steps (default: the whole scenario) of ``env`` (a ``StarSensorEnv``) from ``seed``
+    (default: the scenario's) with ``pipeline`` (None: every step unavailable).  Observers are closed even when a
+    step raises, with the exception, so a recording ends readable; the exception propagates."""
+    sc = env.unwrapped.scenario
+    seed = sc.seed if seed is None else int(seed)
+    steps = sc.n_steps - 1 if steps is None else int(steps)
+    obs, info = env.reset(seed=seed)
+    if pipeline is not None:
+        pipeline.reset(env)
+    result = EpisodeResult(dropped=np.zeros(len(sc.heads), dtype=int))
+    started: list[Observer] = []
+    error: BaseException | None = None
+    t0 = time.perf_counter()
+    try:
+        for obs_ in observers:
+            obs_.start(env, seed, pipeline)
+            started.append(obs_)
+        for k in range(steps):
+            truth = info["truth"]
+            result.dropped += np.array(truth["dropped"], dtype=int)
+            action = pipeline(obs) if pipeline is not None else None
+            latency = dict(pipeline.latency_s) if pipeline is not None else {}
+            source = pipeline.source if pipeline is not None else "none"
+            next_obs, _, terminated, truncated, info = env.step(action)
+            record = flatten(info["scores"], latency)
+            result.records.append(record)
+            log = StepLog(k, obs, truth, action, info["scores"], record, source, latency, pipeline)
+            for o in started:
+                o.step(log)
+            obs = next_obs
+            if terminated and result.lost_at is None:
+                result.lost_at = k
+            if truncated:
+                break
+    except BaseException as exc:
+        error = exc
+        raise
+    finally:
+        result.wall_s = time.perf_counter() - t0
+        for o in started:
+            o.close(error)
+    return result

@@ -1,4 +1,4 @@
-"""Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``."""
+"""Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``, ``starenv view FILE``."""
 
 from __future__ import annotations
 
@@ -79,7 +79,19 @@ def cmd_run(args) -> int:
 
         pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent))
     sc = env.scenario
-    result = run_episode(env, pipeline, seed=args.seed, steps=args.steps)
+    observers = []
+    if args.record:
+        from starenv.record.mcap import McapRecorder
+
+        observers.append(McapRecorder(args.record))
+    if args.rrd:
+        from starenv.record.rerun import RerunRecorder
+
+        observers.append(RerunRecorder(args.rrd))
+    result = run_episode(env, pipeline, seed=args.seed, steps=args.steps, observers=observers)
+    for path in (args.record, args.rrd):
+        if path:
+            print(f"wrote {path}")
     records, wall, dropped, lost_at = result.records, result.wall_s, result.dropped, result.lost_at
     summary = summarize(records)
     print(f"{sc.name}: {sc.description}")
@@ -100,6 +112,22 @@ def cmd_run(args) -> int:
     for key in sorted(k for k in summary if k.startswith("latency_")):
         v = summary[key]
         print(f"  {key:30s} median {v['median']:10.3f}  p95 {v['p95']:10.3f} ms")
+    return 0
+
+
+def cmd_view(args) -> int:
+    import os
+    import subprocess
+
+    from starenv.record.rerun import mcap_to_rrd
+
+    mcap_path = Path(args.recording)
+    rrd = Path(args.rrd) if args.rrd else mcap_path.with_suffix(".rrd")
+    mcap_to_rrd(mcap_path, rrd)
+    print(f"wrote {rrd}")
+    if not args.rrd and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        subprocess.Popen(["rerun", str(rrd)])  # the viewer outlives this command
+        print(f"opened the Rerun viewer on {rrd}")
     return 0
 
 
@@ -125,7 +153,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--agent", action="append", default=[], metavar="ROLE=module:Class",
                    help="replace one agent of the pipeline (roles: predictor, deblurrer, detector, corrector, "
                         "identifier, solver; ROLE=none empties an optional role)")
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="record the episode to an MCAP file (Foxglove schemas; open with Foxglove or starenv view)")
+    p.add_argument("--rrd", default=None, metavar="FILE.rrd", help="record the episode to a Rerun .rrd file")
     p.set_defaults(fn=cmd_run)
+    p = sub.add_parser("view", help="review an MCAP recording in Rerun (opens the viewer when a display exists)")
+    p.add_argument("recording", help="an MCAP file written by starenv run --record")
+    p.add_argument("--rrd", default=None, metavar="FILE.rrd",
+                   help="write the Rerun recording here and do not open the viewer (default: next to the MCAP file)")
+    p.set_defaults(fn=cmd_view)
     args = parser.parse_args(argv)
     try:
         return args.fn(args)

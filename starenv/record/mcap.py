@@ -245,7 +245,7 @@ def read_metadata(path: str | os.PathLike) -> dict[str, dict[str, str]]:
         return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
 
 
-def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int) -> StepData:
+def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int, next_frame: int) -> StepData:
     by_topic: dict[str, object] = {}
     logs = []
     for topic, msg in group:
@@ -274,7 +274,7 @@ def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int) -> Step
     rate = (np.column_stack([gyro.rate_x_rad_s, gyro.rate_y_rad_s, gyro.rate_z_rad_s]) if gyro is not None
             else np.zeros((0, 3))).reshape(-1, 3)
     return StepData(
-        frame=int(scores_msg.frame) if scores_msg is not None else -1, time_ns=t_ns, heads=heads,
+        frame=int(scores_msg.frame) if scores_msg is not None else next_frame, time_ns=t_ns, heads=heads,
         attitude_true=quat("/attitude/true"), attitude_estimate=quat("/attitude/estimate"),
         source=scores_msg.source if scores_msg is not None else "none", scores=scores, record=record,
         gyro_t=gyro_t, gyro_rate=rate, logs=logs,
@@ -282,22 +282,24 @@ def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int) -> Step
 
 
 def read_steps(path: str | os.PathLike) -> Iterator[StepData]:
-    """The steps of a finished recording, in time order (a group of messages without scores, e.g. only the error
-    that stopped a run before its first step, comes back with ``frame = -1``)."""
+    """The steps of a finished recording, in time order (messages without scores, e.g. the error that stopped a run,
+    come back as a step of their own, numbered after the last scored one)."""
     path = check_mcap(path)
     n_heads = int(read_metadata(path)["starenv.run"]["heads"])
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         group: list[tuple[str, object]] = []
-        t_group = None
+        t_group, frame = None, -1
         for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
             if t_group is not None and message.log_time != t_group:
-                yield _step_from(group, t_group, n_heads)
+                step = _step_from(group, t_group, n_heads, frame + 1)
+                frame = step.frame
+                yield step
                 group = []
             t_group = message.log_time
             group.append((channel.topic, decoded))
         if group:
-            yield _step_from(group, t_group, n_heads)
+            yield _step_from(group, t_group, n_heads, frame + 1)
 
 
 def read_partial(path: str | os.PathLike) -> dict[str, int]:

@@ -85,7 +85,9 @@ def cmd_run(args) -> int:
 
         observers.append(McapRecorder(args.record))
     if args.rrd:
-        from starenv.record.rerun import RerunRecorder
+        from starenv.record.rerun import RerunRecorder, analytics_off
+
+        analytics_off()
 
         observers.append(RerunRecorder(args.rrd))
     result = run_episode(env, pipeline, seed=args.seed, steps=args.steps, observers=observers)
@@ -119,8 +121,9 @@ def cmd_view(args) -> int:
     import os
     import subprocess
 
-    from starenv.record.rerun import mcap_to_rrd
+    from starenv.record.rerun import analytics_off, mcap_to_rrd
 
+    analytics_off()
     mcap_path = Path(args.recording)
     rrd = Path(args.rrd) if args.rrd else mcap_path.with_suffix(".rrd")
     mcap_to_rrd(mcap_path, rrd)

@@ -37,6 +37,12 @@ STAGES = (("attitude", ("available", "within_threshold", "attitude_", "cross_bor
 LEVELS = {INFO: "INFO", WARNING: "WARN", ERROR: "ERROR"}
 
 
+def analytics_off() -> None:
+    """Keep Rerun's usage analytics off for this process and the viewers it starts: Rerun's analytics pipeline does
+    not start while the ``CI`` environment variable is set (``rerun analytics disable`` turns it off for good)."""
+    os.environ.setdefault("CI", "1")
+
+
 def stage_of(metric: str) -> str:
     """The pipeline stage a flat-record metric belongs to (``other`` when its name says none)."""
     for stage, prefixes in STAGES:

@@ -401,6 +401,21 @@ def test_an_exception_mid_run_leaves_a_closed_recording_with_the_failure_logged(
     assert rrd_rows(rrd)["/log"] >= 1
 
 
+def test_a_writer_failure_reaches_the_episode(tmp_path, monkeypatch):
+    import starenv.record.mcap as mcap_mod
+
+    def broken(data):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(mcap_mod, "encode_step", broken)
+    env = StarSensorEnv("paper_004")
+    path = tmp_path / "broken.mcap"
+    with pytest.raises(RuntimeError, match="writing .*broken.mcap.partial failed") as info:
+        run_episode(env, None, seed=1, steps=8, observers=[McapRecorder(path)])
+    assert isinstance(info.value.__cause__, OSError)
+    assert not path.exists() and Path(str(path) + ".partial").exists()
+
+
 def test_bad_input_gets_a_clear_error(tmp_path, capsys):
     with pytest.raises(ValueError, match="ending in .mcap"):
         McapRecorder(tmp_path / "x.txt")

@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import shlex
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -145,8 +147,13 @@ class McapRecorder:
     """Observer (``starenv.episode.Observer``) that writes an episode to ``path`` (``*.mcap``).
 
     ``chunk_size``: uncompressed bytes per chunk (a chunk is compressed and written once it is full);
-    ``compression``: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
+    ``compression``: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.  Steps are encoded, compressed and written by a
+    writer thread (zstd releases the GIL, so compression overlaps the next step's simulation and pipeline), in order;
+    at most ``QUEUE`` steps wait, and ``close`` waits for all of them.  An error in the writer thread is raised by the
+    next ``step`` or by ``close``.
     """
+
+    QUEUE = 4
 
     def __init__(self, path: str | os.PathLike, *, chunk_size: int = 1 << 20, compression: str = "zstd"):
         self.path = Path(path)
@@ -160,6 +167,8 @@ class McapRecorder:
         self.chunk_size, self.compression = chunk_size, compression
         self._file = None
         self._writer = None
+        self._thread = None
+        self._failed: BaseException | None = None
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
 
@@ -183,9 +192,22 @@ class McapRecorder:
             "pipeline": json.dumps(self._agents),
             "pipeline_class": "none" if pipeline is None else f"{type(pipeline).__module__}:{type(pipeline).__name__}",
         })
+        self._queue: queue.Queue = queue.Queue(maxsize=self.QUEUE)
+        self._thread = threading.Thread(target=self._drain, name="mcap-writer", daemon=True)
+        self._thread.start()
 
     def step(self, log) -> None:
-        self.write(from_step_log(log, self._sizes))
+        if self._failed is not None:
+            raise RuntimeError(f"writing {self.partial} failed") from self._failed
+        self._queue.put(from_step_log(log, self._sizes))
+
+    def _drain(self) -> None:
+        while (data := self._queue.get()) is not None:
+            if self._failed is None:
+                try:
+                    self.write(data)
+                except BaseException as exc:  # handed to the episode thread by step() / close()
+                    self._failed = exc
 
     def write(self, data: StepData) -> None:
         """Write one step (log time ``data.time_ns``)."""
@@ -209,6 +231,16 @@ class McapRecorder:
 
     def close(self, error: BaseException | None = None) -> None:
         if self._writer is None:
+            return
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
+        if self._failed is not None:  # the file cannot be finished: keep what reached it as .partial
+            self._file.close()
+            self._writer = None
+            if error is None:  # else the episode's own exception is already on its way
+                raise RuntimeError(f"writing {self.partial} failed; what was written is kept there") from self._failed
             return
         status = "complete"
         if error is not None:

@@ -119,18 +119,30 @@ def cmd_run(args) -> int:
 
 def cmd_view(args) -> int:
     import os
+    import shutil
     import subprocess
 
+    from starenv.record.mcap import read_metadata
     from starenv.record.rerun import analytics_off, mcap_to_rrd
 
     analytics_off()
     mcap_path = Path(args.recording)
     rrd = Path(args.rrd) if args.rrd else mcap_path.with_suffix(".rrd")
     mcap_to_rrd(mcap_path, rrd)
+    meta = read_metadata(mcap_path)
+    run, outcome = meta["starenv.run"], meta.get("starenv.outcome", {})
+    print(f"{meta['starenv.scenario']['name']}, seed {run['seed']}: {outcome.get('steps', '?')} steps, "
+          f"{outcome.get('status', 'unfinished')}{': ' + outcome['error'] if outcome.get('error') else ''}")
+    if outcome.get("reproduce"):
+        print(f"  reproduce: {outcome['reproduce']}  (scenario.toml: the starenv.scenario metadata record)")
     print(f"wrote {rrd}")
     if not args.rrd and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        subprocess.Popen(["rerun", str(rrd)])  # the viewer outlives this command
-        print(f"opened the Rerun viewer on {rrd}")
+        viewer = shutil.which("rerun")
+        if viewer is None:
+            print("no Rerun viewer found (install starenv[viewer]); open the .rrd with any Rerun 0.41 viewer")
+        else:
+            subprocess.Popen([viewer, str(rrd)])  # the viewer outlives this command
+            print(f"opened the Rerun viewer on {rrd}")
     return 0
 
 

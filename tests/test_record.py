@@ -2,6 +2,7 @@
 reproduces the run), survives crashes, and Rerun reads it -- through its own MCAP importer and through ours."""
 
 import os
+import shlex
 import shutil
 import signal
 import subprocess
@@ -207,6 +208,19 @@ def test_metadata_reproduces_the_run(run):
     for h, head in enumerate(first.heads):
         if head.image is not None:
             np.testing.assert_array_equal(head.image, obs["frames"][h])
+
+
+def test_the_recorded_command_reproduces_the_recording(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    first = tmp_path / "first.mcap"
+    assert cli.main(["run", "paper_004", "--pipeline", "none", "--steps", "3", "--seed", "5",
+                     "--set", "drops.probability=0.3", "--record", str(first)]) == 0
+    meta = read_metadata(first)
+    (tmp_path / "scenario.toml").write_text(meta["starenv.scenario"]["toml"])
+    words = shlex.split(meta["starenv.outcome"]["reproduce"])
+    assert words[:2] == ["starenv", "run"]
+    assert cli.main([*words[1:], "--record", "again.mcap"]) == 0
+    assert (tmp_path / "again.mcap").read_bytes() == first.read_bytes()
 
 
 @needs_rerun_cli

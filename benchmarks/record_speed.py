@@ -85,8 +85,8 @@ def breakdown(steps: int, tmp: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=150)
-    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds; the best of each is kept")
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds")
     args = parser.parse_args()
     analytics_off()
     with tempfile.TemporaryDirectory() as d:
@@ -97,15 +97,18 @@ def main() -> None:
             "Rerun .rrd (live)": lambda: RerunRecorder(tmp / "run.rrd"),
         }
         steps_per_s(10, None)  # warm the catalog and pattern caches
-        best = dict.fromkeys(configs, 0.0)
-        for _ in range(args.rounds):  # interleaved: the machine's load drifts
+        rates = {name: [] for name in configs}
+        for _ in range(args.rounds):  # interleaved, and compared round by round: the machine's load drifts
             for name, make in configs.items():
-                best[name] = max(best[name], steps_per_s(args.steps, make))
-        base = best["no recording"]
-        print(f"{SCENARIO}, built-in pipeline, {args.steps} steps, best of {args.rounds} interleaved rounds:")
-        for name, rate in best.items():
+                rates[name].append(steps_per_s(args.steps, make))
+        base = np.array(rates["no recording"])
+        print(f"{SCENARIO}, built-in pipeline, {args.steps} steps x {args.rounds} interleaved rounds "
+              f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs):")
+        for name, r in rates.items():
+            ratio = base / np.array(r)
             goal = "   (goal <= 1.3x)" if name.startswith("MCAP") else ""
-            print(f"  {name:28s} {rate:7.1f} steps/s   slowdown {base / rate:5.2f}x{goal}")
+            print(f"  {name:28s} best {max(r):6.1f} steps/s   slowdown: median of rounds {np.median(ratio):5.2f}x "
+                  f"(range {ratio.min():.2f}-{ratio.max():.2f}), best vs best {max(base) / max(r):5.2f}x{goal}")
         size = os.path.getsize(tmp / "run.mcap")
         print(f"  MCAP file: {size / 1e6:.1f} MB for {args.steps} steps ({size / args.steps / 1e3:.0f} kB/step; "
               f"raw frames {np.prod((512, 512)) * 2 / 1e3:.0f} kB/step)")

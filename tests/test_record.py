@@ -254,10 +254,16 @@ def test_rerun_imports_the_images_from_the_mcap(run, tmp_path):
     assert all(images[k] == expected[k] for k in expected)
 
 
-def test_view_builds_the_review_recording(run, tmp_path):
+def test_view_builds_the_review_recording(run, tmp_path, monkeypatch, capsys):
     tmp, logs = run
+    shutil.copy(tmp / "run.mcap", tmp_path / "copy.mcap")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert cli.main(["view", str(tmp_path / "copy.mcap")]) == 0  # no display: the .rrd goes next to the MCAP
+    assert f"wrote {tmp_path / 'copy.rrd'}" in capsys.readouterr().out
     rrd = tmp_path / "review.rrd"
     assert cli.main(["view", str(tmp / "run.mcap"), "--rrd", str(rrd)]) == 0
+    assert rrd_content(rrd) == rrd_content(tmp_path / "copy.rrd")
     rows = rrd_rows(rrd)
     for h in range(3):
         assert rows[f"/head{h}/image"] == sum(int(log.obs["frame_valid"][h]) for log in logs)

@@ -80,7 +80,7 @@ def from_step_log(log, sizes: list[tuple[int, int]]) -> StepData:
             det = _masked(action["detections_xy"][h], action["catalog_ids"][h], action["detection_mask"][h])
         if action is not None and "prediction_mask" in action:
             pred = _masked(action["predicted_xy"][h], action["predicted_ids"][h], action["prediction_mask"][h])
-        image = np.ascontiguousarray(obs["frames"][h, :height, :width]) if valid[h] else None
+        image = np.array(obs["frames"][h, :height, :width]) if valid[h] else None  # a copy: recorders may write later
         heads.append(HeadData(image, true, det, pred))
     t = time_ns(truth["time_s"])
     logs = [(WARNING, f"frame {log.index}: head {h} frame dropped") for h in range(len(sizes)) if not valid[h]]

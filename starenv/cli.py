@@ -1,4 +1,4 @@
-"""Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``."""
+"""Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``, ``starenv view FILE``."""
 
 from __future__ import annotations
 
@@ -79,7 +79,21 @@ def cmd_run(args) -> int:
 
         pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent))
     sc = env.scenario
-    result = run_episode(env, pipeline, seed=args.seed, steps=args.steps)
+    observers = []
+    if args.record:
+        from starenv.record.mcap import McapRecorder
+
+        observers.append(McapRecorder(args.record))
+    if args.rrd:
+        from starenv.record.rerun import RerunRecorder, analytics_off
+
+        analytics_off()
+
+        observers.append(RerunRecorder(args.rrd))
+    result = run_episode(env, pipeline, seed=args.seed, steps=args.steps, observers=observers)
+    for path in (args.record, args.rrd):
+        if path:
+            print(f"wrote {path}")
     records, wall, dropped, lost_at = result.records, result.wall_s, result.dropped, result.lost_at
     summary = summarize(records)
     print(f"{sc.name}: {sc.description}")
@@ -100,6 +114,35 @@ def cmd_run(args) -> int:
     for key in sorted(k for k in summary if k.startswith("latency_")):
         v = summary[key]
         print(f"  {key:30s} median {v['median']:10.3f}  p95 {v['p95']:10.3f} ms")
+    return 0
+
+
+def cmd_view(args) -> int:
+    import os
+    import shutil
+    import subprocess
+
+    from starenv.record.mcap import read_metadata
+    from starenv.record.rerun import analytics_off, mcap_to_rrd
+
+    analytics_off()
+    mcap_path = Path(args.recording)
+    rrd = Path(args.rrd) if args.rrd else mcap_path.with_suffix(".rrd")
+    mcap_to_rrd(mcap_path, rrd)
+    meta = read_metadata(mcap_path)
+    run, outcome = meta["starenv.run"], meta.get("starenv.outcome", {})
+    print(f"{meta['starenv.scenario']['name']}, seed {run['seed']}: {outcome.get('steps', '?')} steps, "
+          f"{outcome.get('status', 'unfinished')}{': ' + outcome['error'] if outcome.get('error') else ''}")
+    if outcome.get("reproduce"):
+        print(f"  reproduce: {outcome['reproduce']}  (scenario.toml: the starenv.scenario metadata record)")
+    print(f"wrote {rrd}")
+    if not args.rrd and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        viewer = shutil.which("rerun")
+        if viewer is None:
+            print("no Rerun viewer found (install starenv[viewer]); open the .rrd with any Rerun 0.41 viewer")
+        else:
+            subprocess.Popen([viewer, str(rrd)])  # the viewer outlives this command
+            print(f"opened the Rerun viewer on {rrd}")
     return 0
 
 
@@ -125,7 +168,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--agent", action="append", default=[], metavar="ROLE=module:Class",
                    help="replace one agent of the pipeline (roles: predictor, deblurrer, detector, corrector, "
                         "identifier, solver; ROLE=none empties an optional role)")
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="record the episode to an MCAP file (Foxglove schemas; open with Foxglove or starenv view)")
+    p.add_argument("--rrd", default=None, metavar="FILE.rrd", help="record the episode to a Rerun .rrd file")
     p.set_defaults(fn=cmd_run)
+    p = sub.add_parser("view", help="review an MCAP recording in Rerun (opens the viewer when a display exists)")
+    p.add_argument("recording", help="an MCAP file written by starenv run --record")
+    p.add_argument("--rrd", default=None, metavar="FILE.rrd",
+                   help="write the Rerun recording here and do not open the viewer (default: next to the MCAP file)")
+    p.set_defaults(fn=cmd_view)
     args = parser.parse_args(argv)
     try:
         return args.fn(args)

@@ -1,0 +1,358 @@
+"""MCAP recordings of episodes in Foxglove's well-known protobuf schemas, readable by Foxglove and Rerun.
+
+Channels (log times: integer ns of simulation time, the frame's mid-exposure; never wall clock):
+
+* ``/head{h}/image``: ``foxglove.RawImage``, ``mono16`` little-endian, the frame as the sensor delivered it (none on a
+  dropped frame);
+* ``/head{h}/truth``, ``/head{h}/detections``, ``/head{h}/predictions``: ``foxglove.ImageAnnotations``: the true
+  stars' trail centroids, the pipeline's detections and its predicted positions as points, with a ``HIP n`` label on
+  every point that carries a catalog id (true stars, identified detections, predictions).  Foxglove's image
+  coordinates put (0, 0) at the top-left *corner* of the top-left pixel, so points are starenv's positions + 0.5 px;
+* ``/attitude/true``, ``/attitude/estimate``: ``foxglove.FrameTransform`` parent ``icrs``, child ``body`` /
+  ``body_estimate``.  A FrameTransform gives the child frame's orientation in the parent frame (it maps child
+  coordinates to parent coordinates), i.e. the inverse of starenv's attitude (ICRS -> body): the rotation written is
+  the conjugate of ``truth["attitude"]`` / ``action["attitude"]``;
+* ``/scores``: ``starenv.StepScores`` (``starenv.record.messages``); ``/gyro``: ``starenv.GyroSamples``;
+* ``/log``: ``foxglove.Log``: dropped frames, steps without a solution, and the error that ended a run.
+
+Metadata records: ``starenv.scenario`` (the scenario as TOML, overrides applied), ``starenv.run`` (seed, heads,
+pipeline agents, starenv version) and, at the end, ``starenv.outcome`` (steps recorded, status, error and the
+``starenv run`` command that reproduces the recording).
+
+Crash safety: the file is written as ``FILE.mcap.partial`` (chunks reach the file as they fill) and renamed to
+``FILE.mcap`` when the recorder closes, also after an error (the error is logged to ``/log`` first), so an existing
+finished recording is replaced in one step, never half-overwritten.  A killed process leaves the ``.partial`` file,
+readable up to its last complete chunk with :func:`read_partial`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import shlex
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+from foxglove_schemas_protobuf.Log_pb2 import Log
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
+from mcap.well_known import MessageEncoding
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
+from mcap_protobuf.decoder import DecoderFactory
+from mcap_protobuf.schema import register_schema
+
+import starenv
+from starenv.record import messages
+from starenv.record.step import ERROR, HeadData, Stars2D, StepData, from_step_log, time_ns
+
+MAGIC = b"\x89MCAP0\r\n"
+PIXEL_ORIGIN = 0.5  # Foxglove/Rerun image coordinates = starenv pixel coordinates + 0.5
+LAYERS = {"truth": (0.2, 0.9, 0.2), "detections": (1.0, 0.3, 0.2), "predictions": (0.2, 0.7, 1.0)}  # RGB
+COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+def _stamp(msg, t_ns: int) -> None:
+    msg.timestamp.seconds, msg.timestamp.nanos = divmod(int(t_ns), 1_000_000_000)
+
+
+def _image(image: np.ndarray, h: int, t_ns: int) -> RawImage:
+    height, width = image.shape
+    msg = RawImage(frame_id=f"head{h}", width=width, height=height, encoding="mono16", step=2 * width,
+                   data=image.astype("<u2", copy=False).tobytes())
+    _stamp(msg, t_ns)
+    return msg
+
+
+def _annotations(stars: Stars2D, rgb: tuple[float, float, float], t_ns: int) -> ImageAnnotations:
+    msg = ImageAnnotations()
+    pts = msg.points.add(type=PointsAnnotation.POINTS, thickness=4.0)
+    _stamp(pts, t_ns)
+    pts.outline_color.r, pts.outline_color.g, pts.outline_color.b, pts.outline_color.a = *rgb, 1.0
+    for (x, y), hip in zip(stars.xy + PIXEL_ORIGIN, stars.ids, strict=True):
+        pts.points.add(x=float(x), y=float(y))
+        if hip >= 0:
+            text = msg.texts.add(text=f"HIP {int(hip)}", font_size=12.0)
+            _stamp(text, t_ns)
+            text.position.x, text.position.y = float(x), float(y)
+            text.text_color.r, text.text_color.g, text.text_color.b, text.text_color.a = *rgb, 1.0
+            text.background_color.a = 0.0
+    return msg
+
+
+def _stars(msg: ImageAnnotations) -> Stars2D:
+    """Points and their ``HIP n`` labels back from :func:`_annotations` (labels sit exactly on their points)."""
+    xy = np.array([(p.x, p.y) for a in msg.points for p in a.points], dtype=np.float64).reshape(-1, 2)
+    labels = {(t.position.x, t.position.y): int(t.text.removeprefix("HIP ")) for t in msg.texts}
+    ids = np.array([labels.get((x, y), -1) for x, y in xy], dtype=np.int64)
+    return Stars2D(xy - PIXEL_ORIGIN, ids)
+
+
+def _transform(q: np.ndarray, child: str, t_ns: int) -> FrameTransform:
+    msg = FrameTransform(parent_frame_id="icrs", child_frame_id=child)
+    _stamp(msg, t_ns)
+    msg.rotation.x, msg.rotation.y, msg.rotation.z = (-float(v) for v in q[:3])  # conjugate: body -> icrs
+    msg.rotation.w = float(q[3])
+    return msg
+
+
+def _log(level: int, text: str, t_ns: int) -> Log:
+    msg = Log(level=level, message=text, name="starenv")
+    _stamp(msg, t_ns)
+    return msg
+
+
+def encode_step(data: StepData) -> list[tuple[str, object]]:
+    """The (topic, protobuf message) pairs of one step, in a fixed order."""
+    t = data.time_ns
+    out: list[tuple[str, object]] = []
+    for h, head in enumerate(data.heads):
+        if head.image is not None:
+            out.append((f"/head{h}/image", _image(head.image, h, t)))
+        for layer, rgb in LAYERS.items():
+            out.append((f"/head{h}/{layer}", _annotations(getattr(head, layer), rgb, t)))
+    out.append(("/attitude/true", _transform(data.attitude_true, "body", t)))
+    if data.attitude_estimate is not None:
+        out.append(("/attitude/estimate", _transform(data.attitude_estimate, "body_estimate", t)))
+    scores = messages.encode_scores(data.frame, t * 1e-9, data.source, data.scores, data.record)
+    out.append(("/scores", scores))
+    gyro = messages.classes()["GyroSamples"](frame=data.frame, t_s=data.gyro_t.tolist(),
+                                             rate_x_rad_s=data.gyro_rate[:, 0].tolist(),
+                                             rate_y_rad_s=data.gyro_rate[:, 1].tolist(),
+                                             rate_z_rad_s=data.gyro_rate[:, 2].tolist())
+    out.append(("/gyro", gyro))
+    out.extend(("/log", _log(level, text, t)) for level, text in data.logs)
+    return out
+
+
+def reproduce_command(toml_name: str, seed: int, steps: int, agents: dict[str, str | None] | None) -> str:
+    """The ``starenv run`` command line that repeats a recorded run from its scenario saved as ``toml_name``."""
+    words = ["starenv", "run", toml_name, "--seed", str(seed), "--steps", str(steps)]
+    if agents is None:
+        words += ["--pipeline", "none"]
+    else:
+        for role, spec in agents.items():
+            words += ["--agent", f"{role}={spec or 'none'}"]
+    return shlex.join(words)
+
+
+class McapRecorder:
+    """Observer (``starenv.episode.Observer``) that writes an episode to ``path`` (``*.mcap``).
+
+    ``chunk_size``: uncompressed bytes per chunk (a chunk is compressed and written once it is full);
+    ``compression``: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.  Steps are encoded, compressed and written by a
+    writer thread (zstd releases the GIL, so compression overlaps the next step's simulation and pipeline), in order;
+    at most ``QUEUE`` steps wait, and ``close`` waits for all of them.  An error in the writer thread is raised by the
+    next ``step`` or by ``close``.
+    """
+
+    QUEUE = 4
+
+    def __init__(self, path: str | os.PathLike, *, chunk_size: int = 1 << 20, compression: str = "zstd"):
+        self.path = Path(path)
+        if self.path.suffix != ".mcap":
+            raise ValueError(f"McapRecorder path: expected a file name ending in .mcap, got {str(path)!r}")
+        if compression not in COMPRESSION:
+            raise ValueError(f"McapRecorder compression: expected one of {sorted(COMPRESSION)}, got {compression!r}")
+        if not isinstance(chunk_size, int) or chunk_size < 1:
+            raise ValueError(f"McapRecorder chunk_size: expected a positive number of bytes, got {chunk_size!r}")
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.chunk_size, self.compression = chunk_size, compression
+        self._file = None
+        self._writer = None
+        self._thread = None
+        self._failed: BaseException | None = None
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+
+    def start(self, env, seed: int, pipeline) -> None:
+        base = env.unwrapped
+        sc = base.scenario
+        self._sizes = [(h.camera.height, h.camera.width) for h in sc.heads]
+        self._period_ns = time_ns(sc.frame_period_s)
+        self._seed = int(seed)
+        self._agents = pipeline.describe() if hasattr(pipeline, "describe") else None
+        self._steps = 0
+        self._last_ns = None
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.partial, "wb")  # closed in close()
+        self._writer = Writer(self._file, chunk_size=self.chunk_size, compression=COMPRESSION[self.compression])
+        self._writer.start(profile="", library=f"{LIBRARY_IDENTIFIER} starenv/{starenv.__version__}")
+        self._channels, self._schemas = {}, {}
+        self._writer.add_metadata("starenv.scenario", {"name": sc.name, "toml": sc.to_toml()})
+        self._writer.add_metadata("starenv.run", {
+            "seed": str(self._seed), "heads": str(len(sc.heads)), "starenv_version": starenv.__version__,
+            "pipeline": json.dumps(self._agents),
+            "pipeline_class": "none" if pipeline is None else f"{type(pipeline).__module__}:{type(pipeline).__name__}",
+        })
+        self._queue: queue.Queue = queue.Queue(maxsize=self.QUEUE)
+        self._thread = threading.Thread(target=self._drain, name="mcap-writer", daemon=True)
+        self._thread.start()
+
+    def step(self, log) -> None:
+        if self._failed is not None:
+            raise RuntimeError(f"writing {self.partial} failed") from self._failed
+        self._queue.put(from_step_log(log, self._sizes))
+
+    def _drain(self) -> None:
+        while (data := self._queue.get()) is not None:
+            if self._failed is None:
+                try:
+                    self.write(data)
+                except BaseException as exc:  # handed to the episode thread by step() / close()
+                    self._failed = exc
+
+    def write(self, data: StepData) -> None:
+        """Write one step (log time ``data.time_ns``)."""
+        for topic, msg in encode_step(data):
+            self._write(topic, msg, data.time_ns)
+        self._file.flush()  # every chunk completed by this step goes to the file now
+        self._steps += 1
+        self._last_ns = data.time_ns
+
+    def _write(self, topic: str, msg, t_ns: int) -> None:
+        """One protobuf message, serialised deterministically (map fields in key order)."""
+        channel = self._channels.get(topic)
+        if channel is None:
+            name = type(msg).DESCRIPTOR.full_name
+            if name not in self._schemas:
+                self._schemas[name] = register_schema(self._writer, type(msg))
+            schema = self._schemas[name]
+            channel = self._channels[topic] = self._writer.register_channel(topic, MessageEncoding.Protobuf, schema)
+        self._writer.add_message(channel, log_time=t_ns, data=msg.SerializeToString(deterministic=True),
+                                 publish_time=t_ns)
+
+    def close(self, error: BaseException | None = None) -> None:
+        if self._writer is None:
+            return
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
+        if self._failed is not None:  # the file cannot be finished: keep what reached it as .partial
+            self._file.close()
+            self._writer = None
+            if error is None:  # else the episode's own exception is already on its way
+                raise RuntimeError(f"writing {self.partial} failed; what was written is kept there") from self._failed
+            return
+        status = "complete"
+        if error is not None:
+            status = "error"
+            t = 0 if self._last_ns is None else self._last_ns + self._period_ns  # the step that failed
+            text = f"frame {self._steps}: run stopped by {type(error).__name__}: {error}"
+            self._write("/log", _log(ERROR, text, t), t)
+        self._writer.add_metadata("starenv.outcome", {
+            "status": status, "steps": str(self._steps),
+            "error": "" if error is None else f"{type(error).__name__}: {error}",
+            "reproduce": reproduce_command("scenario.toml", self._seed, self._steps, self._agents),
+            "scenario_toml": "the 'toml' entry of the starenv.scenario metadata record",
+        })
+        self._writer.finish()
+        self._file.close()
+        self._writer = None
+        os.replace(self.partial, self.path)
+
+
+def check_mcap(path: str | os.PathLike) -> Path:
+    """``path`` if it is an existing file that starts like an MCAP file, else ``ValueError`` saying what is wrong."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"recording {str(path)!r}: no such file")
+    with open(p, "rb") as f:
+        if f.read(len(MAGIC)) != MAGIC:
+            raise ValueError(f"recording {str(path)!r}: not an MCAP file (it does not start with the MCAP magic)")
+    return p
+
+
+def read_metadata(path: str | os.PathLike) -> dict[str, dict[str, str]]:
+    """The metadata records of a finished recording: name -> key/value strings."""
+    with open(check_mcap(path), "rb") as f:
+        return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+
+
+def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int, next_frame: int) -> StepData:
+    by_topic: dict[str, object] = {}
+    logs = []
+    for topic, msg in group:
+        if topic == "/log":
+            logs.append((int(msg.level), msg.message))
+        else:
+            by_topic[topic] = msg
+    scores_msg = by_topic.get("/scores")
+    scores, record = messages.decode_scores(scores_msg) if scores_msg is not None else ({}, {})
+    heads = []
+    for h in range(n_heads):
+        img = by_topic.get(f"/head{h}/image")
+        image = None
+        if img is not None:
+            image = np.frombuffer(img.data, dtype="<u2").reshape(img.height, img.step // 2)[:, : img.width]
+        layers = {k: _stars(by_topic[f"/head{h}/{k}"]) if f"/head{h}/{k}" in by_topic else Stars2D.empty()
+                  for k in LAYERS}
+        heads.append(HeadData(image, **layers))
+
+    def quat(topic: str) -> np.ndarray | None:
+        m = by_topic.get(topic)
+        return None if m is None else np.array([-m.rotation.x, -m.rotation.y, -m.rotation.z, m.rotation.w])
+
+    gyro = by_topic.get("/gyro")
+    gyro_t = np.array(gyro.t_s) if gyro is not None else np.zeros(0)
+    rate = (np.column_stack([gyro.rate_x_rad_s, gyro.rate_y_rad_s, gyro.rate_z_rad_s]) if gyro is not None
+            else np.zeros((0, 3))).reshape(-1, 3)
+    return StepData(
+        frame=int(scores_msg.frame) if scores_msg is not None else next_frame, time_ns=t_ns, heads=heads,
+        attitude_true=quat("/attitude/true"), attitude_estimate=quat("/attitude/estimate"),
+        source=scores_msg.source if scores_msg is not None else "none", scores=scores, record=record,
+        gyro_t=gyro_t, gyro_rate=rate, logs=logs,
+    )
+
+
+def read_steps(path: str | os.PathLike) -> Iterator[StepData]:
+    """The steps of a finished recording, in time order (messages without scores, e.g. the error that stopped a run,
+    come back as a step of their own, numbered after the last scored one)."""
+    path = check_mcap(path)
+    n_heads = int(read_metadata(path)["starenv.run"]["heads"])
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        group: list[tuple[str, object]] = []
+        t_group, frame = None, -1
+        for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
+            if t_group is not None and message.log_time != t_group:
+                step = _step_from(group, t_group, n_heads, frame + 1)
+                frame = step.frame
+                yield step
+                group = []
+            t_group = message.log_time
+            group.append((channel.topic, decoded))
+        if group:
+            yield _step_from(group, t_group, n_heads, frame + 1)
+
+
+def read_partial(path: str | os.PathLike) -> dict[str, int]:
+    """Messages per topic in a possibly unfinished file (e.g. the ``.partial`` of a killed run), read as a stream up
+    to the first incomplete record; chunk CRCs are checked."""
+    from mcap.records import Channel, Chunk
+    from mcap.stream_reader import breakup_chunk
+
+    counts: dict[str, int] = {}
+    topics: dict[int, str] = {}
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+                if isinstance(record, Channel):
+                    topics[record.id] = record.topic
+                elif isinstance(record, Chunk):
+                    for inner in breakup_chunk(record, validate_crc=True):
+                        if isinstance(inner, Channel):
+                            topics[inner.id] = inner.topic
+                        elif hasattr(inner, "channel_id"):
+                            counts[topics[inner.channel_id]] = counts.get(topics[inner.channel_id], 0) + 1
+        except (McapError, EOFError, ValueError):
+            pass  # the end of what was written before the process died
+    return counts

@@ -1,0 +1,158 @@
+"""Rerun review of an episode: from an MCAP recording (:func:`mcap_to_rrd`) or live from the env (``RerunRecorder``).
+
+Both paths log each step with :func:`log_step`, so they produce the same entities:
+
+* ``head{h}/image`` (the frame, uint16), with ``head{h}/image/truth`` (true trail centroids, green, ``HIP n``
+  labels), ``head{h}/image/detections`` (red, labelled with the claimed id) and ``head{h}/image/predictions``
+  (blue, labelled) as points; Rerun's image coordinates put (0, 0) at the top-left pixel's corner, so points are
+  starenv's positions + 0.5 px;
+* ``metrics/{stage}/{metric}``: every metric of the step's flat score record as a scalar series, grouped by stage
+  (attitude, detection, identification, prediction, restoration, latency, other) -- new metrics appear on their own;
+* ``log``: dropped frames, steps without a solution and the error that stopped a run, as text log entries.
+
+Timelines: ``frame`` (sequence: the frame index) and ``sim_time`` (duration: simulation time at mid-exposure).  No
+wall-clock timeline (``log_time`` is switched off) and a recording id derived from the MCAP file's bytes (or, live,
+from the scenario, seed and pipeline), so the same run gives the same recording content.  rerun-sdk is imported
+inside the functions (an optional dependency).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from starenv.record.step import ERROR, INFO, WARNING, StepData, from_step_log
+
+APPLICATION_ID = "starenv"
+PIXEL_ORIGIN = 0.5
+COLORS = {"truth": (50, 230, 50), "detections": (255, 80, 50), "predictions": (50, 180, 255)}
+STAGES = (("attitude", ("available", "within_threshold", "attitude_", "cross_boresight_", "roll_", "pitch_", "yaw_")),
+          ("detection", ("centroid_", "detection_")), ("identification", ("id_rate", "false_id_rate", "solved")),
+          ("prediction", ("prediction_",)), ("restoration", ("restoration_",)), ("latency", ("latency_",)))
+LEVELS = {INFO: "INFO", WARNING: "WARN", ERROR: "ERROR"}
+
+
+def analytics_off() -> None:
+    """Keep Rerun's usage analytics off for this process and the viewers it starts: Rerun's analytics pipeline does
+    not start while the ``CI`` environment variable is set (``rerun analytics disable`` turns it off for good)."""
+    os.environ.setdefault("CI", "1")
+
+
+def stage_of(metric: str) -> str:
+    """The pipeline stage a flat-record metric belongs to (``other`` when its name says none)."""
+    for stage, prefixes in STAGES:
+        if metric.startswith(prefixes):
+            return stage
+    return "other"
+
+
+def blueprint(n_heads: int):
+    """The default layout: the heads' frames with overlays on the left, error series and the log on the right."""
+    import rerun.blueprint as rrb
+
+    frames = rrb.Grid(*[rrb.Spatial2DView(origin=f"head{h}", name=f"head {h}") for h in range(n_heads)])
+    series = [rrb.TimeSeriesView(origin=f"metrics/{stage}", name=stage)
+              for stage in ("attitude", "detection", "identification", "prediction", "latency")]
+    return rrb.Blueprint(rrb.Horizontal(frames, rrb.Vertical(*series, rrb.TextLogView(origin="log", name="log")),
+                                        column_shares=[2, 1]), collapse_panels=True)
+
+
+def open_stream(path: str | os.PathLike, recording_id: str, n_heads: int, name: str):
+    """A recording stream saving to ``path`` (``.rrd``) with a fixed id, no wall-clock timeline, our blueprint."""
+    import rerun as rr
+
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, send_properties=False)
+    rec.set_log_time_enabled(False)
+    rec.save(str(path), default_blueprint=blueprint(n_heads))
+    rec.send_recording_name(name)
+    return rec
+
+
+def log_step(rec, data: StepData) -> None:
+    """Log one step to the recording stream ``rec``: the one place both review paths write Rerun data."""
+    import rerun as rr
+
+    rec.set_time("frame", sequence=int(data.frame))
+    rec.set_time("sim_time", duration=np.timedelta64(int(data.time_ns), "ns"))
+    for h, head in enumerate(data.heads):
+        if head.image is not None:
+            rec.log(f"head{h}/image", rr.Image(head.image))
+        for layer, color in COLORS.items():
+            stars = getattr(head, layer)
+            labels = [f"HIP {i}" if i >= 0 else "" for i in stars.ids]
+            rec.log(f"head{h}/image/{layer}", rr.Points2D(stars.xy + PIXEL_ORIGIN, labels=labels, colors=color,
+                                                         radii=2.5 if layer == "truth" else 1.5))
+    for key in sorted(data.record):
+        value = data.record[key]
+        if key != "frame" and value is not None:
+            rec.log(f"metrics/{stage_of(key)}/{key}", rr.Scalars(float(value)))
+    for level, text in data.logs:
+        rec.log("log", rr.TextLog(text, level=LEVELS.get(level, "INFO")))
+
+
+def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike) -> Path:
+    """Build the Rerun recording of an MCAP recording; returns the .rrd path."""
+    from starenv.record.mcap import check_mcap, read_metadata, read_steps
+
+    mcap_path = check_mcap(mcap_path)
+    digest = hashlib.sha256()
+    with open(mcap_path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    meta = read_metadata(mcap_path)
+    if "starenv.run" not in meta:
+        raise ValueError(f"recording {str(mcap_path)!r}: an MCAP file, but not one starenv wrote (no starenv.run "
+                         "metadata)")
+    n_heads = int(meta["starenv.run"]["heads"])
+    name = f"{meta['starenv.scenario']['name']} seed {meta['starenv.run']['seed']}"
+    rrd_path = Path(rrd_path)
+    rec = open_stream(rrd_path, str(uuid.UUID(bytes=digest.digest()[:16])), n_heads, name)
+    for data in read_steps(mcap_path):
+        log_step(rec, data)
+    rec.flush()
+    rec.disconnect()
+    return rrd_path
+
+
+class RerunRecorder:
+    """Observer (``starenv.episode.Observer``) that records an episode straight to a Rerun ``.rrd`` file."""
+
+    def __init__(self, path_rrd: str | os.PathLike):
+        self.path = Path(path_rrd)
+        if self.path.suffix != ".rrd":
+            raise ValueError(f"RerunRecorder path_rrd: expected a file name ending in .rrd, got {str(path_rrd)!r}")
+        self._rec = None
+
+    def start(self, env, seed: int, pipeline) -> None:
+        sc = env.unwrapped.scenario
+        self._sizes = [(h.camera.height, h.camera.width) for h in sc.heads]
+        self._period_ns = int(round(sc.frame_period_s * 1e9))
+        self._last = None
+        agents = pipeline.describe() if hasattr(pipeline, "describe") else None
+        key = json.dumps([sc.to_toml(), int(seed), agents]).encode()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        rec_id = str(uuid.UUID(bytes=hashlib.sha256(key).digest()[:16]))
+        self._rec = open_stream(self.path, rec_id, len(sc.heads), f"{sc.name} seed {seed}")
+
+    def step(self, log) -> None:
+        data = from_step_log(log, self._sizes)
+        log_step(self._rec, data)
+        self._last = data
+
+    def close(self, error: BaseException | None = None) -> None:
+        if self._rec is None:
+            return
+        if error is not None:
+            frame = 0 if self._last is None else self._last.frame + 1
+            t = 0 if self._last is None else self._last.time_ns + self._period_ns
+            text = f"frame {frame}: run stopped by {type(error).__name__}: {error}"
+            log_step(self._rec, StepData(frame, t, [], np.zeros(4), None, "none", {}, {}, np.zeros(0),
+                                         np.zeros((0, 3)), [(ERROR, text)]))
+        self._rec.flush()
+        self._rec.disconnect()
+        self._rec = None

@@ -103,8 +103,10 @@ def score_stars(
             claimed = claimed_ids >= 0
             rows = {int(h): i for i, h in enumerate(truth.catalog_id)}
             star = np.array([rows.get(int(h), -1) for h in claimed_ids], dtype=np.intp)
-            near = np.linalg.norm(detected_xy - truth.xy_centroid[np.maximum(star, 0)], axis=1) <= gate_px
-            correct = claimed & (star >= 0) & near
+            near = np.zeros(len(star), dtype=bool)
+            known = star >= 0  # the claimed id is a star on this frame (none are when the frame holds no star)
+            near[known] = np.linalg.norm(detected_xy[known] - truth.xy_centroid[star[known]], axis=1) <= gate_px
+            correct = claimed & known & near
             s.ids_correct = int(correct.sum())
             s.ids_wrong = int((claimed & ~correct).sum())
             if n_detectable:

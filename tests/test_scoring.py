@@ -31,6 +31,15 @@ def test_either_member_of_an_unresolved_double_is_a_correct_id():
     assert s.id_rate == pytest.approx(2 / 4)
 
 
+def test_ids_claimed_on_a_frame_without_stars_are_all_wrong():
+    empty = truth(np.zeros((0, 2)), np.zeros(0, dtype=np.int64))
+    s = score_stars(empty, np.array([[10.0, 10.0], [50.0, 60.0]]), np.array([7, -1]))
+    assert (s.ids_correct, s.ids_wrong, s.false_id_rate, s.id_rate, s.solved) == (0, 1, 1.0, None, False)
+    t = truth([[10.0, 10.0]], [7])
+    s = score_stars(t, np.array([[10.5, 10.0], [50.0, 60.0]]), np.array([7, 99]))  # 99 is not on this frame
+    assert (s.ids_correct, s.ids_wrong) == (1, 1)
+
+
 def test_matching_is_one_to_one_within_the_gate():
     t = truth([[10.0, 10.0], [20.0, 10.0]], [1, 2], detectable=[True, False])
     det = np.array([[10.5, 10.0], [10.4, 10.0], [50.0, 50.0]])  # two detections compete for star 1; one is noise

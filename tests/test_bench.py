@@ -224,11 +224,9 @@ def test_ray_matches_local_processes_bit_for_bit(tmp_path):
     text = SMALL.replace("values = [0, 4]", "values = [3]")
     bench = parse_bench(text)
     local = run_bench(bench, tmp_path / "local", jobs=1, progress=False, log=_quiet)  # pool == in-process above
-    env = {"PYTHONPATH": str(ROOT), "STARENV_CACHE_DIR": os.environ["STARENV_CACHE_DIR"]}
-    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=80 * 1024**2, runtime_env={"env_vars": env},
-             log_to_driver=False)
+    options = {"num_cpus": 2, "object_store_memory": 80 * 1024**2}  # the runner starts a local instance
     try:
-        remote = run_bench(bench, tmp_path / "ray", use_ray=True, progress=False, log=_quiet)
+        remote = run_bench(bench, tmp_path / "ray", use_ray=True, ray_options=options, progress=False, log=_quiet)
     finally:
         ray.shutdown()
     assert len(local) == len(remote) == 2
@@ -236,6 +234,13 @@ def test_ray_matches_local_processes_bit_for_bit(tmp_path):
         ra, rb = read_run(a)[1], read_run(b)[1]
         assert comparable(ra) == comparable(rb)
         assert all(any(k.startswith("latency_") for k in r) for r in ra)  # latencies exist, just not compared
+
+
+def test_ray_missing_is_a_clear_error(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    assert main(["bench", str(_bench(tmp_path)), "--out", str(tmp_path / "o"), "--ray", "--quiet"]) == 2
+    assert "--ray: the ray package is not installed" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "runs").exists()
 
 
 def test_resume_reruns_only_missing_or_incomplete_runs(tmp_path):

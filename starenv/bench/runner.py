@@ -135,15 +135,18 @@ def _local(jobs: int) -> Callable:
             for args in tasks:
                 yield args[0], execute(*args)
             return
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"))
+        try:
             futures = {pool.submit(execute, *args): args[0] for args in tasks}
             for fut in as_completed(futures):
                 yield futures[fut], fut.result()
+        finally:  # on an error or an interrupt, runs not yet started are dropped, not run to the end
+            pool.shutdown(wait=True, cancel_futures=True)
 
     return submit_all
 
 
-def _ray(address: str | None) -> Callable:
+def _ray(address: str | None, options: dict | None = None) -> Callable:
     try:
         import ray
     except ImportError as exc:
@@ -158,29 +161,35 @@ def _ray(address: str | None) -> Callable:
                 if key in os.environ:
                     env[key] = os.environ[key]
             ray.init(address=address or None, include_dashboard=False, runtime_env={"env_vars": env},
-                     log_to_driver=False)
+                     log_to_driver=False, **(options or {}))
         remote = ray.remote(execute)
         pending = {remote.remote(*args): args[0] for args in tasks}
-        while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            for ref in done:
-                yield pending.pop(ref), ray.get(ref)
+        try:
+            while pending:
+                done, _ = ray.wait(list(pending), num_returns=1)
+                for ref in done:
+                    yield pending.pop(ref), ray.get(ref)
+        finally:
+            for ref in pending:
+                ray.cancel(ref)
 
     return submit_all
 
 
 def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str | None = None,
-              use_ray: bool = False, progress: bool = True, log=print) -> list[Path]:
+              use_ray: bool = False, ray_options: dict | None = None, progress: bool = True,
+              log=print) -> list[Path]:
     """Run every run of ``bench`` not already complete in ``out``; return all run files in the bench's order.
 
     ``jobs``: local worker processes (default: the CPU count; 1 runs in this process).  ``use_ray``: run on the Ray
-    cluster at ``ray_address`` (None: a local instance, or the one this process already started).
+    cluster at ``ray_address`` (None: a local instance, or the one this process already started; ``ray_options``
+    go to ``ray.init``, e.g. ``num_cpus``).
     """
     from tqdm import tqdm
 
     out = Path(out)
     check_writable(out)
-    executor = _ray(ray_address) if use_ray else _local((os.cpu_count() or 1) if jobs is None else jobs)
+    executor = _ray(ray_address, ray_options) if use_ray else _local((os.cpu_count() or 1) if jobs is None else jobs)
     todo, reused = [], []
     for run in bench.runs:
         complete = is_complete(run_file(out, run), run)

@@ -14,6 +14,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from starenv import scenario as scenario_mod
+from starenv.agents.pipeline import Pipeline
 from starenv.bench import BenchError, comparable, load_bench, parse_bench, read_run, run_bench, write_report
 from starenv.bench.report import aggregate
 from starenv.bench.runner import RunResult, run_file, write_run
@@ -118,8 +120,14 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
     scenarios = {r.scenario for r in bench.runs}
     assert {f"paper_00{i}" for i in range(5)} <= scenarios
     for i in range(5):
-        names = {r.pipeline.name for r in bench.runs if r.scenario == f"paper_00{i}"}
-        assert {"scenario", "lost_in_space"} <= names
+        runs = {r.pipeline.name: r for r in bench.runs if r.scenario == f"paper_00{i}"}
+        assert {"tracking", "lost_in_space"} <= set(runs)
+        # "tracking" is the scenario's own pipeline for every seed paper (none names another identifier)
+        sc = scenario_mod.load(f"paper_00{i}")
+        own = Pipeline.for_scenario(sc).describe()
+        assert runs["tracking"].pipeline.build(sc).describe() == own
+        lis = runs["lost_in_space"].pipeline.build(sc).describe()
+        assert lis == {**own, "identifier": "starenv.agents.identify:LostInSpaceIdentifier"}
     swept = [r for r in bench.runs if r.sweep_key == "motion.rate_dps"]
     assert {r.scenario for r in swept} == {"paper_002"}
     rates = sorted({r.sweep_value for r in swept})
@@ -201,8 +209,6 @@ def test_run_records_equal_an_independent_episode(tmp_path):
         header, steps, footer = read_run(path)
         assert header["digest"] == run.digest and header["identity"]["seed"] == 0
         assert footer["steps"] == len(steps) == 3
-        from starenv import scenario as scenario_mod
-
         sc = scenario_mod.load("paper_000", run.overrides)
         env = StarSensorEnv("paper_000", run.overrides)
         direct = run_episode(env, run.pipeline.build(sc), seed=0, steps=3).records

@@ -24,6 +24,7 @@ from starenv.bench.runner import LATENCY_PREFIX, read_run
 FRACTIONS = ("within_threshold", "available", "solved")
 MEANS = ("id_rate", "false_id_rate")
 SKIP = ("frame", "step")
+ROLE_NAMES = {"pipeline": "whole pipeline"}  # latency_pipeline_ms: one whole policy call
 UNITS = {"_dps": "deg/s", "_deg": "deg", "_arcsec": "arcsec", "_hz": "Hz", "_s": "s", "_px": "px", "_um": "um",
          "_mm": "mm", "_e": "e-", "_rthr": "deg/sqrt(h)"}
 
@@ -112,7 +113,8 @@ def markdown_tables(rows: list[dict]) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     roles = sorted({k[len(LATENCY_PREFIX):-len("_ms_median")] for r in rows for k in r
                     if k.startswith(LATENCY_PREFIX) and k.endswith("_ms_median")})
-    lat = ["| " + " | ".join(head + roles) + " |", "|" + "---|" * (len(head) + len(roles))]
+    names = [ROLE_NAMES.get(role, role) for role in roles]
+    lat = ["| " + " | ".join(head + names) + " |", "|" + "---|" * (len(head) + len(roles))]
     for r in rows:
         cells = _case_cells(r) + [
             f"{_fmt(r.get(f'latency_{role}_ms_median'))} / {_fmt(r.get(f'latency_{role}_ms_p95'))}" for role in roles
@@ -198,7 +200,7 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
                 box.set_facecolor(color)
                 box.set_alpha(0.6)
             ax.plot([], [], "s", color=color, label=pipeline)
-        ax.set_xticks(range(len(roles)), roles)
+        ax.set_xticks(range(len(roles)), [ROLE_NAMES.get(role, role) for role in roles])
         ax.set_yscale("log")
         ax.set_xlabel("agent role")
         ax.set_ylabel("latency per step (ms)")

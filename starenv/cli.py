@@ -105,14 +105,14 @@ def cmd_run(args) -> int:
 
 
 def cmd_bench(args) -> int:
+    import importlib.util
+
     from starenv.bench import load_bench, run_bench, write_report
     from starenv.bench.runner import check_writable
 
-    import importlib.util
-
-    for module, extra in (("tqdm", "report"), ("matplotlib", "report")):
+    for module in ("tqdm", "matplotlib"):
         if importlib.util.find_spec(module) is None:  # fail before the runs, not at the report after them
-            raise ValueError(f"starenv bench needs {module} (install the {extra!r} extra: pip install 'starenv[{extra}]')")
+            raise ValueError(f"starenv bench needs {module} (the 'report' extra: pip install 'starenv[report]')")
     bench = load_bench(args.bench)
     check_writable(Path(args.out))
     if args.jobs is not None and args.jobs < 1:

@@ -1,4 +1,5 @@
-"""Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``, ``starenv view FILE``."""
+"""Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``,
+``starenv bench BENCH``, ``starenv view FILE``."""
 
 from __future__ import annotations
 
@@ -146,6 +147,27 @@ def cmd_view(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    import importlib.util
+
+    from starenv.bench import load_bench, run_bench, write_report
+    from starenv.bench.runner import check_writable
+
+    for module in ("tqdm", "matplotlib"):
+        if importlib.util.find_spec(module) is None:  # fail before the runs, not at the report after them
+            raise ValueError(f"starenv bench needs {module} (the 'report' extra: pip install 'starenv[report]')")
+    bench = load_bench(args.bench)
+    check_writable(Path(args.out))
+    if args.jobs is not None and args.jobs < 1:
+        raise ValueError(f"--jobs: expected an integer >= 1, got {args.jobs}")
+    print(f"{bench.name}: {len(bench.runs)} runs, {sum(r.steps for r in bench.runs)} steps, from {bench.source}")
+    files = run_bench(bench, args.out, jobs=args.jobs, use_ray=args.ray is not None, ray_address=args.ray or None,
+                      progress=not args.quiet)
+    report = write_report(bench, files, Path(args.out))
+    print(f"report: {report}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="starenv", description="Star sensor simulator under dynamic conditions")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -177,6 +199,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rrd", default=None, metavar="FILE.rrd",
                    help="write the Rerun recording here and do not open the viewer (default: next to the MCAP file)")
     p.set_defaults(fn=cmd_view)
+    p = sub.add_parser("bench", help="run a benchmark (scenarios x pipelines x seeds, sweeps) and write a report")
+    p.add_argument("bench", help="bench file (.toml) or bundled bench name (e.g. bundled)")
+    p.add_argument("--out", required=True, help="output folder (runs/, summary tables, plots/, report.md)")
+    p.add_argument("--jobs", type=int, default=None, help="local worker processes (default: the CPU count)")
+    p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="run on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(fn=cmd_bench)
     args = parser.parse_args(argv)
     try:
         return args.fn(args)

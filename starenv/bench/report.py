@@ -1,0 +1,259 @@
+"""Aggregating a bench's run files into tables (markdown, CSV), plots (PNG) and ``report.md``.
+
+Cases are (scenario, swept key and value, pipeline); a case pools the steps of all its seeds.  Per case:
+
+* ``availability``: fraction of steps with a valid estimate within the scenario's threshold (``within_threshold``);
+  ``solved``: fraction of steps with >= 3 correct ids and none wrong; ``id_rate``: mean ID rate over steps with
+  detectable stars; ``false_id_rate``: mean over steps with claimed ids;
+* every other metric (errors in arcsec and px, recall, precision, latencies in ms per agent role, and any metric a
+  newer agent adds): median and p95 (linear interpolation) over the steps that have a value.  Attitude errors are
+  over available steps only.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from starenv.bench.runner import LATENCY_PREFIX, read_run
+
+FRACTIONS = ("within_threshold", "available", "solved")
+MEANS = ("id_rate", "false_id_rate")
+SKIP = ("frame", "step")
+ROLE_NAMES = {"pipeline": "whole pipeline"}  # latency_pipeline_ms: one whole policy call
+UNITS = {"_dps": "deg/s", "_deg": "deg", "_arcsec": "arcsec", "_hz": "Hz", "_s": "s", "_px": "px", "_um": "um",
+         "_mm": "mm", "_e": "e-", "_rthr": "deg/sqrt(h)"}
+
+
+def key_unit(key: str) -> str:
+    """The unit a scenario key carries in its name (``motion.rate_dps`` -> ``deg/s``), or ''."""
+    last = key.rsplit(".", 1)[-1]
+    return next((u for suffix, u in UNITS.items() if last.endswith(suffix)), "")
+
+
+def _label(value) -> str:
+    return "" if value is None else json.dumps(value)
+
+
+def aggregate(run_files: list[Path]) -> list[dict]:
+    """One row per case, in first-seen order: identity columns, then the statistics described in the module doc."""
+    cases: dict[tuple, dict] = {}
+    for path in run_files:
+        header, steps, _ = read_run(path)
+        ident = header["identity"]
+        sweep = ident["sweep"] or {}
+        key = (ident["scenario"], sweep.get("key"), _label(sweep.get("value")), ident["pipeline"]["name"])
+        case = cases.setdefault(key, {"ident": ident, "runs": 0, "records": []})
+        case["runs"] += 1
+        case["records"].extend(steps)
+    rows = []
+    for (scenario, sweep_key, _, pipeline), case in cases.items():
+        sweep = case["ident"]["sweep"] or {}
+        row = {"scenario": scenario, "sweep_key": sweep_key or "", "sweep_value": sweep.get("value", ""),
+               "pipeline": pipeline, "runs": case["runs"], "steps": len(case["records"])}
+        records = case["records"]
+        metrics = sorted({k for r in records for k in r if k not in SKIP})
+        for m in metrics:
+            values = np.array([r[m] for r in records if r.get(m) is not None], dtype=np.float64)
+            if m in FRACTIONS or m in MEANS:
+                row[f"{m}_mean" if m in MEANS else m] = float(values.mean()) if len(values) else None
+            if m not in FRACTIONS:
+                row[f"{m}_median"] = float(np.median(values)) if len(values) else None
+                row[f"{m}_p95"] = float(np.percentile(values, 95)) if len(values) else None
+        rows.append(row)
+    return rows
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        w = csv.DictWriter(f, columns, restval="")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: "" if v is None else json.dumps(v) if isinstance(v, list) else v for k, v in r.items()})
+
+
+def _fmt(v) -> str:
+    if v is None or v == "":
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3g}" if math.isfinite(v) else str(v)
+    return str(v)
+
+
+ACCURACY = (
+    ("availability", "within_threshold"), ("solved", "solved"), ("ID rate", "id_rate_mean"),
+    ("false ID", "false_id_rate_mean"),
+    ("att. err. median / p95 (arcsec)", ("attitude_error_arcsec_median", "attitude_error_arcsec_p95")),
+    ("cross-bore. median / p95 (arcsec)", ("cross_boresight_error_arcsec_median", "cross_boresight_error_arcsec_p95")),
+    ("roll median / p95 (arcsec)", ("roll_error_arcsec_median", "roll_error_arcsec_p95")),
+    ("centroid median / p95 (px)", ("centroid_error_px_mean_median", "centroid_error_px_mean_p95")),
+    ("prediction median / p95 (px)", ("prediction_error_px_mean_median", "prediction_error_px_mean_p95")),
+)
+
+
+def _case_cells(r: dict) -> list[str]:
+    sweep = f"{r['sweep_key']} = {_fmt(r['sweep_value'])}" if r["sweep_key"] else "-"
+    return [r["scenario"], sweep, r["pipeline"], str(r["runs"]), str(r["steps"])]
+
+
+def markdown_tables(rows: list[dict]) -> str:
+    """The accuracy table and the latency table (median / p95 ms per agent role) as markdown."""
+    head = ["scenario", "sweep", "pipeline", "runs", "steps"]
+    lines = ["| " + " | ".join(head + [name for name, _ in ACCURACY]) + " |",
+             "|" + "---|" * (len(head) + len(ACCURACY))]
+    for r in rows:
+        cells = _case_cells(r)
+        for _, col in ACCURACY:
+            cells.append(" / ".join(_fmt(r.get(c)) for c in col) if isinstance(col, tuple) else _fmt(r.get(col)))
+        lines.append("| " + " | ".join(cells) + " |")
+    roles = sorted({k[len(LATENCY_PREFIX):-len("_ms_median")] for r in rows for k in r
+                    if k.startswith(LATENCY_PREFIX) and k.endswith("_ms_median")})
+    names = [ROLE_NAMES.get(role, role) for role in roles]
+    lat = ["| " + " | ".join(head + names) + " |", "|" + "---|" * (len(head) + len(roles))]
+    for r in rows:
+        cells = _case_cells(r) + [
+            f"{_fmt(r.get(f'latency_{role}_ms_median'))} / {_fmt(r.get(f'latency_{role}_ms_p95'))}" for role in roles
+        ]
+        lat.append("| " + " | ".join(cells) + " |")
+    return ("## Accuracy\n\n" + "\n".join(lines) + "\n\n## Latency per agent role, median / p95 (ms)\n\n"
+            + "\n".join(lat) + "\n")
+
+
+def _slug(*parts: str) -> str:
+    return "-".join("".join(c if c.isalnum() or c in "_-" else "_" for c in p) for p in parts if p)
+
+
+def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[str, Path]]:
+    """Error and ID rate vs swept value per (scenario, key), and latency per role per scenario; (title, path)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    made = []
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        if r["sweep_key"] and isinstance(r["sweep_value"], int | float):
+            groups.setdefault((r["scenario"], r["sweep_key"]), []).append(r)
+    for (scenario, key), group in groups.items():
+        unit = key_unit(key)
+        xlabel = f"{key} ({unit})" if unit else key
+        ident_axis = _axis_of(run_files, scenario, key)
+        if ident_axis is not None:
+            xlabel += f" about {list(ident_axis)}"
+        for what, cols, ylabel, logy in (
+            ("error", ("attitude_error_arcsec_median", "attitude_error_arcsec_p95"), "attitude error (arcsec)", True),
+            ("id-rate", ("id_rate_mean",), "ID rate (correct ids / detectable stars)", False),
+        ):
+            fig, ax = plt.subplots(figsize=(7, 4.5))
+            for pipeline in dict.fromkeys(r["pipeline"] for r in group):
+                pts = sorted((r["sweep_value"], *(r.get(c) for c in cols)) for r in group if r["pipeline"] == pipeline)
+                x = [p[0] for p in pts]
+                line = ax.plot(x, [np.nan if p[1] is None else p[1] for p in pts], "o-", label=f"{pipeline}"
+                               + (" median" if len(cols) > 1 else ""))[0]
+                if len(cols) > 1:
+                    ax.plot(x, [np.nan if p[2] is None else p[2] for p in pts], "s--", color=line.get_color(),
+                            label=f"{pipeline} p95")
+            if logy:
+                ax.set_yscale("log")
+            else:
+                ax.set_ylim(-0.02, 1.02)
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(ylabel)
+            title = f"{scenario}: {ylabel.split(' (')[0]} vs {key.rsplit('.', 1)[-1]}"
+            ax.set_title(title)
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=8)
+            path = folder / f"{_slug(scenario, key, what)}.png"
+            fig.tight_layout()
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            made.append((title, path))
+    by_scenario: dict[str, dict[str, dict[str, list[float]]]] = {}
+    for f in run_files:
+        header, steps, _ = read_run(f)
+        per = by_scenario.setdefault(header["identity"]["scenario"], {})
+        lat = per.setdefault(header["identity"]["pipeline"]["name"], {})
+        for rec in steps:
+            for k, v in rec.items():
+                if k.startswith(LATENCY_PREFIX) and v is not None:
+                    lat.setdefault(k[len(LATENCY_PREFIX):-len("_ms")], []).append(v)
+    for scenario, per in by_scenario.items():
+        roles = sorted({role for lat in per.values() for role in lat})
+        if not roles:
+            continue
+        fig, ax = plt.subplots(figsize=(max(6.0, 1.4 * len(roles) * max(1, len(per)) ** 0.5), 4.5))
+        width = 0.8 / len(per)
+        for i, (pipeline, lat) in enumerate(per.items()):
+            pos = [j + (i - (len(per) - 1) / 2) * width for j, role in enumerate(roles) if lat.get(role)]
+            data = [lat[role] for role in roles if lat.get(role)]
+            bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=True,
+                            flierprops={"markersize": 2})
+            color = f"C{i}"
+            for box in bp["boxes"]:
+                box.set_facecolor(color)
+                box.set_alpha(0.6)
+            ax.plot([], [], "s", color=color, label=pipeline)
+        ax.set_xticks(range(len(roles)), [ROLE_NAMES.get(role, role) for role in roles])
+        ax.set_yscale("log")
+        ax.set_xlabel("agent role")
+        ax.set_ylabel("latency per step (ms)")
+        title = f"{scenario}: agent latency per role (wall clock, all steps)"
+        ax.set_title(title)
+        ax.grid(True, axis="y", which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        path = folder / f"{_slug(scenario, 'latency')}.png"
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        made.append((title, path))
+    return made
+
+
+def _axis_of(run_files: list[Path], scenario: str, key: str):
+    for f in run_files:
+        ident = read_run(f)[0]["identity"]
+        if ident["scenario"] == scenario and (ident["sweep"] or {}).get("key") == key:
+            return ident["sweep"]["axis"]
+    return None
+
+
+def write_report(bench, run_files: list[Path], out: Path) -> Path:
+    """Tables (``summary.md``, ``summary.csv``), plots (``plots/*.png``) and ``report.md`` linking them."""
+    out = Path(out)
+    rows = aggregate(run_files)
+    tables = markdown_tables(rows)
+    (out / "summary.md").write_text(f"# {bench.name}: summary\n\n{tables}", encoding="utf-8")
+    write_csv(rows, out / "summary.csv")
+    plots = plot(rows, run_files, out / "plots")
+    lines = [f"# Benchmark report: {bench.name}", ""]
+    if bench.description:
+        lines += [bench.description, ""]
+    lines += [
+        f"Bench file: `{bench.source}`.  {len(run_files)} runs, {sum(r['steps'] for r in rows)} scored steps.  "
+        "Per-step scores: [`runs/`](runs/) (one JSON-lines file per run, its identity in the first line).  "
+        "Tables: [summary.md](summary.md), [summary.csv](summary.csv) (every metric's median and p95).",
+        "",
+        "Availability = fraction of steps with a valid attitude within the scenario's threshold; solved = fraction of "
+        "steps with >= 3 correct ids and none wrong; ID rate = mean over steps of correct ids / detectable stars.  "
+        "Attitude errors are over available steps.  Latencies are wall-clock on the machine that ran the step (the "
+        "only values that differ between repeated runs).",
+        "",
+        tables,
+        "## Plots",
+        "",
+    ]
+    if not any("vs" in t for t, _ in plots):
+        lines += ["No swept parameter in this bench: no error / ID-rate curves.", ""]
+    for title, path in plots:
+        rel = path.relative_to(out).as_posix()
+        lines += [f"### {title}", "", f"![{title}]({rel})", ""]
+    report = out / "report.md"
+    report.write_text("\n".join(lines), encoding="utf-8")
+    return report

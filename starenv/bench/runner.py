@@ -1,0 +1,217 @@
+"""Running a bench: every run scored step by step with ``run_episode``, on local processes or a Ray cluster, resumable.
+
+Each run is a pure function of its :class:`~starenv.bench.spec.RunSpec` (scenario text, overrides, pipeline, seed,
+steps): the same run gives bit-identical score records whichever executor ran it, except the agent latencies
+(``latency_*_ms``, wall-clock) and the run's ``wall_s``, which are measurements of the machine.
+
+Results: ``OUT/runs/<run_id>.jsonl``, one JSON object per line: a header ``{"identity": ..., "digest": ...,
+"run_id": ...}``, one line per step (the flat record of ``starenv.scoring.flatten``, with ``step``),
+and a footer ``{"complete": true, "steps": n, "digest": ..., "dropped": [...], "lost_at": ..., "wall_s": ...}``.
+The file is written whole under a temporary name, then moved into place (``os.replace``), so a killed runner leaves
+either a complete file or none; on restart a run whose file is complete and carries the same digest is reused.
+
+Workers return their records to the driver, which writes the files.  With recordings, each worker writes
+``OUT/recordings/<run_id>.mcap`` itself (on a Ray cluster ``OUT`` must be on a file system every node shares).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import sys
+import tempfile
+from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+
+from starenv.bench.spec import BenchError, RunSpec
+
+LATENCY_PREFIX = "latency_"
+
+
+@dataclass
+class RunResult:
+    """What a worker hands back: the run's id, its per-step records and the episode's totals."""
+
+    run_id: str
+    records: list[dict]
+    dropped: list[int]
+    lost_at: int | None
+    wall_s: float
+
+
+def execute(run: RunSpec, recording: str | None = None, recorder: str | None = None) -> RunResult:
+    """Run one episode; ``recorder`` ("module:Callable") is called with the ``recording`` path for an Observer."""
+    from starenv import scenario as scenario_mod
+    from starenv.env import StarSensorEnv
+    from starenv.episode import run_episode
+
+    scenario = scenario_mod.load(run.scenario_data(), run.overrides)
+    env = StarSensorEnv(scenario.data)
+    pipeline = run.pipeline.build(scenario)
+    observers = []
+    if recorder is not None and recording is not None:
+        module, _, attr = recorder.partition(":")
+        Path(recording).parent.mkdir(parents=True, exist_ok=True)
+        observers.append(getattr(importlib.import_module(module), attr)(recording))
+    result = run_episode(env, pipeline, seed=run.seed, steps=run.steps, observers=observers)
+    return RunResult(run.run_id, result.records, [int(d) for d in result.dropped], result.lost_at, result.wall_s)
+
+
+def run_file(out: Path, run: RunSpec) -> Path:
+    return Path(out) / "runs" / f"{run.run_id}.jsonl"
+
+
+def recording_file(out: Path, run: RunSpec) -> Path:
+    return Path(out) / "recordings" / f"{run.run_id}.mcap"
+
+
+def read_run(path: Path) -> tuple[dict, list[dict], dict]:
+    """Header, step records and footer of a run file; ValueError if it is not a complete run file."""
+    lines = Path(path).read_text(encoding="utf-8").splitlines()
+    if len(lines) < 2:
+        raise ValueError(f"{path}: not a complete run file (fewer than 2 lines)")
+    try:
+        header, footer = json.loads(lines[0]), json.loads(lines[-1])
+        steps = [json.loads(line) for line in lines[1:-1]]
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not a complete run file ({exc})") from exc
+    if not footer.get("complete") or footer.get("steps") != len(steps) or footer.get("digest") != header.get("digest"):
+        raise ValueError(f"{path}: not a complete run file (no matching footer)")
+    return header, steps, footer
+
+
+def is_complete(path: Path, run: RunSpec) -> bool:
+    """True when ``path`` holds a complete run file whose digest is ``run``'s."""
+    try:
+        header, _, _ = read_run(path)
+    except (OSError, ValueError):
+        return False
+    return header.get("digest") == run.digest
+
+
+def write_run(path: Path, run: RunSpec, result: RunResult) -> None:
+    """Write a run file atomically: a temporary file in the same folder, flushed, then ``os.replace``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = {"run_id": run.run_id, "digest": run.digest, "identity": run.identity()}
+    footer = {"complete": True, "steps": len(result.records), "digest": run.digest, "dropped": result.dropped,
+              "lost_at": result.lost_at, "wall_s": result.wall_s}
+    lines = [json.dumps(header, sort_keys=True)]
+    lines += [json.dumps({"step": k, **rec}, sort_keys=True) for k, rec in enumerate(result.records)]
+    lines.append(json.dumps(footer, sort_keys=True))
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write("\n".join(lines) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def comparable(records: Iterable[dict]) -> list[dict]:
+    """Step records without the wall-clock fields (``latency_*``), for bit-for-bit comparison between executors."""
+    return [{k: v for k, v in r.items() if not k.startswith(LATENCY_PREFIX)} for r in records]
+
+
+def check_writable(out: Path) -> None:
+    """Create ``out`` and prove a file can be written in it, or raise BenchError naming the folder."""
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as exc:
+        raise BenchError(f"--out {out}: expected a folder that can be created and written ({exc})") from exc
+
+
+def _local(jobs: int) -> Callable:
+    def submit_all(tasks):
+        if jobs <= 1:
+            for args in tasks:
+                yield args[0], execute(*args)
+            return
+        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"))
+        try:
+            futures = {pool.submit(execute, *args): args[0] for args in tasks}
+            for fut in as_completed(futures):
+                yield futures[fut], fut.result()
+        finally:  # on an error or an interrupt, runs not yet started are dropped, not run to the end
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    return submit_all
+
+
+def _ray(address: str | None, options: dict | None = None) -> Callable:
+    try:
+        import ray
+    except ImportError as exc:
+        raise BenchError("--ray: the ray package is not installed (install the 'ray' extra: "
+                         "pip install 'starenv[ray]')") from exc
+
+    def submit_all(tasks):
+        if not ray.is_initialized():
+            root = str(Path(__file__).resolve().parent.parent.parent)
+            env = {"PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
+            for key in ("STARENV_CACHE_DIR",):
+                if key in os.environ:
+                    env[key] = os.environ[key]
+            ray.init(address=address or None, include_dashboard=False, runtime_env={"env_vars": env},
+                     log_to_driver=False, **(options or {}))
+        remote = ray.remote(execute)
+        pending = {remote.remote(*args): args[0] for args in tasks}
+        try:
+            while pending:
+                done, _ = ray.wait(list(pending), num_returns=1)
+                for ref in done:
+                    yield pending.pop(ref), ray.get(ref)
+        finally:
+            for ref in pending:
+                ray.cancel(ref)
+
+    return submit_all
+
+
+def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str | None = None,
+              use_ray: bool = False, ray_options: dict | None = None, progress: bool = True,
+              log=print) -> list[Path]:
+    """Run every run of ``bench`` not already complete in ``out``; return all run files in the bench's order.
+
+    ``jobs``: local worker processes (default: the CPU count; 1 runs in this process).  ``use_ray``: run on the Ray
+    cluster at ``ray_address`` (None: a local instance, or the one this process already started; ``ray_options``
+    go to ``ray.init``, e.g. ``num_cpus``).
+    """
+    from tqdm import tqdm
+
+    out = Path(out)
+    check_writable(out)
+    executor = _ray(ray_address, ray_options) if use_ray else _local((os.cpu_count() or 1) if jobs is None else jobs)
+    todo, reused = [], []
+    for run in bench.runs:
+        complete = is_complete(run_file(out, run), run)
+        if complete and bench.recorder is not None and not recording_file(out, run).is_file():
+            complete = False
+        (reused if complete else todo).append(run)
+    if reused:
+        log(f"reusing {len(reused)} complete run(s) from {out / 'runs'}:")
+        for run in reused:
+            log(f"  reused {run.run_id}")
+    total_steps = sum(r.steps for r in bench.runs)
+    done_steps = sum(r.steps for r in reused)
+    bar = tqdm(total=len(bench.runs), initial=len(reused), unit="run", disable=not progress, file=sys.stderr,
+               desc=bench.name, postfix={"steps": f"{done_steps}/{total_steps}"})
+    tasks = [(r, str(recording_file(out, r)) if bench.recorder else None, bench.recorder) for r in todo]
+    try:
+        for run, result in executor(tasks):
+            write_run(run_file(out, run), run, result)
+            done_steps += run.steps
+            bar.set_postfix(steps=f"{done_steps}/{total_steps}")
+            bar.update(1)
+    finally:
+        bar.close()
+    log(f"ran {len(todo)} run(s), reused {len(reused)}")
+    return [run_file(out, r) for r in bench.runs]

@@ -1,0 +1,408 @@
+"""Benchmark files: scenarios x agent pipelines x seeds, with one scenario key swept per run group.
+
+A bench file is TOML (bundled ones live in ``benches/`` at the repository root and are named without ``.toml``)::
+
+    name = "my-bench"                 # optional, defaults to the file's stem
+    description = "..."               # optional
+    seeds = [0, 1]                    # default seeds of every group (default: each scenario's own seed)
+    steps = 30                        # default scored steps per run (default: the whole scenario)
+    recordings = false                # true: one MCAP per run via starenv.record.mcap:McapRecorder;
+                                      # or "module:Callable", called with the recording's path, returning an Observer
+
+    [pipelines.svd]                   # a named pipeline: the scenario's own [pipeline] with these roles replaced
+    solver = "starenv.agents.solve:SvdSolver"          # role = "module:Class" or "none"
+    catalog_mag_limit = 7.0                            # optional onboard catalog limit
+    [pipelines.svd.options.solver]                     # optional constructor options per role
+
+    [[runs]]                          # a run group: one scenario, its pipelines, seeds and an optional sweep
+    scenario = "paper_002"            # bundled name, or a path (relative to the bench file or the working folder)
+    pipelines = ["scenario", "lost_in_space", "svd"]   # names from [pipelines] or the built-in presets
+    set = { "gyro.arw_deg_rthr" = 0.02 }              # optional fixed overrides (dotted scenario keys)
+    sweep = { key = "motion.rate_dps", axis = [1, 1, 1], start = 0, stop = 30, step = 5 }
+    # or  sweep = { key = "motion.rate_dps", axis = [1, 0, 0], values = [0, 5, 10] }
+    # or  sweep = { key = "drops.probability", values = [0.0, 0.1, 0.3] }   (no axis: each value used as is)
+    seeds = [3]                       # optional, replaces the default seeds
+    steps = 50                        # optional, replaces the default steps
+
+With ``axis``, a swept value is a magnitude along the unit vector of ``axis`` (a rate of 10 deg/s about [1, 1, 1]
+overrides ``motion.rate_dps`` with ``10 / sqrt(3) * [1, 1, 1]``); ranges include ``stop``.
+
+Built-in pipelines (``PRESETS``): ``scenario`` (the scenario's own ``[pipeline]``), ``lost_in_space`` (the same
+with the lost-in-space identifier, no tracking) and ``tracking`` (the same with the tracking identifier).
+
+Loading validates everything before any run starts: unknown keys, missing scenarios, every scenario x sweep value
+loaded with its overrides, every pipeline built once per scenario.  Errors are :class:`BenchError` naming the file,
+the key path and the expected form.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from starenv import scenario as scenario_mod
+from starenv.agents.base import AGENT_ROLES
+
+BENCH_DIR = Path(__file__).resolve().parent.parent.parent / "benches"
+MCAP_RECORDER = "starenv.record.mcap:McapRecorder"
+PRESETS: dict[str, dict[str, str]] = {
+    "scenario": {},
+    "lost_in_space": {"identifier": "starenv.agents.identify:LostInSpaceIdentifier"},
+    "tracking": {"identifier": "starenv.agents.identify:TrackingIdentifier"},
+}
+FORMAT = 1  # bumps when the meaning of a run's identity changes
+
+
+class BenchError(ValueError):
+    """A bench file that does not describe a valid benchmark."""
+
+
+@dataclass(frozen=True)
+class PipelineChoice:
+    """A named pipeline: agents (role -> "module:Class" or None) and options replacing the scenario's own."""
+
+    name: str
+    agents: dict[str, str | None] = field(default_factory=dict)
+    options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    catalog_mag_limit: float | None = None
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "agents": self.agents, "options": self.options,
+                "catalog_mag_limit": self.catalog_mag_limit}
+
+    def build(self, scenario):
+        """The ``Pipeline`` for a loaded scenario (raises ValueError for an unloadable agent or a wrong protocol)."""
+        from starenv.agents.pipeline import Pipeline
+
+        spec = scenario.pipeline
+        options = {**spec.options}
+        for role, opts in self.options.items():
+            options[role] = {**options.get(role, {}), **opts}
+        limit = spec.catalog_mag_limit if self.catalog_mag_limit is None else self.catalog_mag_limit
+        return Pipeline(limit, options, **{**spec.agents, **self.agents})
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """One swept scenario key: ``values`` (magnitudes along the unit ``axis`` when given, else used as is)."""
+
+    key: str
+    values: tuple
+    axis: tuple[float, ...] | None = None
+
+    def override(self, value: Any) -> Any:
+        if self.axis is None:
+            return value
+        norm = math.sqrt(sum(a * a for a in self.axis))
+        return [value * a / norm for a in self.axis]
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: a pure function of the scenario file's text, the overrides, the pipeline, the seed and the steps."""
+
+    scenario: str  # the scenario's name
+    scenario_file: str
+    scenario_text: str
+    overrides: dict
+    sweep_key: str | None
+    sweep_value: Any
+    sweep_axis: tuple[float, ...] | None
+    pipeline: PipelineChoice
+    seed: int
+    steps: int
+
+    def identity(self) -> dict:
+        """What the run's results depend on (the scenario by the SHA-256 of its text)."""
+        return {
+            "format": FORMAT,
+            "scenario": self.scenario,
+            "scenario_sha256": hashlib.sha256(self.scenario_text.encode()).hexdigest(),
+            "overrides": self.overrides,
+            "sweep": None if self.sweep_key is None else {"key": self.sweep_key, "value": self.sweep_value,
+                                                          "axis": self.sweep_axis},
+            "pipeline": self.pipeline.as_dict(),
+            "seed": self.seed,
+            "steps": self.steps,
+        }
+
+    @property
+    def digest(self) -> str:
+        text = json.dumps(self.identity(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    @property
+    def run_id(self) -> str:
+        """File-name-safe id: scenario, pipeline, seed and the first 16 hex digits of the identity's hash."""
+        return f"{self.scenario}-{self.pipeline.name}-s{self.seed}-{self.digest[:16]}"
+
+    def scenario_data(self) -> dict:
+        data = tomllib.loads(self.scenario_text)
+        data.setdefault("name", self.scenario)
+        return data
+
+
+@dataclass
+class Bench:
+    """A validated benchmark: its runs in file order and the recorder ("module:Callable") or None."""
+
+    name: str
+    description: str
+    source: str
+    runs: list[RunSpec]
+    recorder: str | None = None
+
+
+def resolve_bench(bench: str | Path) -> Path:
+    """Path of a bench file given by path or by the name of a bundled one (``bundled`` -> ``benches/bundled.toml``)."""
+    path = Path(bench)
+    if path.suffix != ".toml" and (BENCH_DIR / f"{bench}.toml").is_file():
+        return BENCH_DIR / f"{bench}.toml"
+    if path.is_file():
+        return path
+    names = ", ".join(sorted(p.stem for p in BENCH_DIR.glob("*.toml"))) or "none"
+    raise BenchError(f"bench {str(bench)!r} is neither a file nor a bundled bench (bundled: {names})")
+
+
+class _Checker:
+    """Typed reads of one table that refuses keys it was not asked about."""
+
+    def __init__(self, data: Any, path: str, source: str):
+        self.path, self.source, self.used = path, source, set()
+        if not isinstance(data, dict):
+            raise BenchError(f"{source}: {path or '(top level)'}: expected a table, got {data!r}")
+        self.data = data
+
+    def where(self, key: str) -> str:
+        return f"{self.path}.{key}" if self.path else key
+
+    def fail(self, key: str, expected: str, got: Any) -> None:
+        raise BenchError(f"{self.source}: {self.where(key)}: expected {expected}, got {got!r}")
+
+    def get(self, key: str, default: Any = None) -> Any:
+        self.used.add(key)
+        return self.data.get(key, default)
+
+    def finish(self, allowed_extra: tuple[str, ...] = ()) -> None:
+        extra = sorted(set(self.data) - self.used - set(allowed_extra))
+        if extra:
+            allowed = ", ".join(sorted(self.used | set(allowed_extra)))
+            raise BenchError(f"{self.source}: {self.where(extra[0])}: unknown key (allowed here: {allowed})")
+
+    def integers(self, key: str, default: Any, low: int) -> Any:
+        v = self.get(key, default)
+        if v is default:
+            return v
+        ok = isinstance(v, list) and v and all(isinstance(x, int) and not isinstance(x, bool) and x >= low for x in v)
+        if not ok:
+            self.fail(key, f"a non-empty list of integers >= {low}", v)
+        return v
+
+    def integer(self, key: str, default: Any, low: int) -> Any:
+        v = self.get(key, default)
+        if v is not default and (not isinstance(v, int) or isinstance(v, bool) or v < low):
+            self.fail(key, f"an integer >= {low}", v)
+        return v
+
+
+def _number(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _sweep(tbl: _Checker) -> Sweep:
+    key = tbl.get("key")
+    if not isinstance(key, str) or not key or not all(key.split(".")):
+        tbl.fail("key", "a dotted scenario key path like 'motion.rate_dps'", key)
+    axis = tbl.get("axis")
+    if axis is not None:
+        if not (isinstance(axis, list) and axis and all(_number(a) for a in axis) and any(a != 0 for a in axis)):
+            tbl.fail("axis", "a non-zero list of numbers, e.g. [1, 0, 0]", axis)
+        axis = tuple(float(a) for a in axis)
+    values = tbl.get("values")
+    start, stop, step = tbl.get("start"), tbl.get("stop"), tbl.get("step")
+    if values is not None and (start, stop, step) != (None, None, None):
+        tbl.fail("values", "either values = [...] or start / stop / step, not both", values)
+    if values is None:
+        for k, v in (("start", start), ("stop", stop), ("step", step)):
+            if not _number(v):
+                tbl.fail(k, "a number (or give values = [...] instead)", v)
+        if step <= 0 or stop < start:
+            tbl.fail("step", f"a step > 0 with stop >= start (start = {start}, stop = {stop})", step)
+        n = int(math.floor((stop - start) / step + 1e-9)) + 1
+        if n > 10000:
+            tbl.fail("step", "at most 10000 values between start and stop", step)
+        values = [round(start + i * step, 12) for i in range(n)]
+    elif not isinstance(values, list) or not values:
+        tbl.fail("values", "a non-empty list of values", values)
+    if axis is not None and not all(_number(v) for v in values):
+        tbl.fail("values", "numbers (magnitudes along axis)", values)
+    if len({json.dumps(v, sort_keys=True) for v in values}) != len(values):
+        tbl.fail("values", "distinct values", values)
+    tbl.finish()
+    return Sweep(key, tuple(values), axis)
+
+
+def _pipeline_choice(name: str, tbl: _Checker) -> PipelineChoice:
+    agents: dict[str, str | None] = {}
+    for role in AGENT_ROLES:
+        v = tbl.get(role)
+        if v is None:
+            continue
+        module, sep, cls = v.partition(":") if isinstance(v, str) else ("", "", "")
+        if isinstance(v, str) and v.lower() == "none":
+            agents[role] = None
+        elif not (sep and module and cls):
+            tbl.fail(role, "'module:Class' (e.g. 'starenv.agents.solve:SvdSolver') or 'none'", v)
+        else:
+            agents[role] = v
+    limit = tbl.get("catalog_mag_limit")
+    if limit is not None and not (_number(limit) and -2.0 <= limit <= 14.0):
+        tbl.fail("catalog_mag_limit", "a number in [-2, 14]", limit)
+    options = {}
+    opts = tbl.get("options")
+    if opts is not None:
+        ot = _Checker(opts, tbl.where("options"), tbl.source)
+        for role in AGENT_ROLES:
+            o = ot.get(role)
+            if o is not None:
+                options[role] = dict(_Checker(o, ot.where(role), tbl.source).data)
+        ot.finish()
+    tbl.finish()
+    return PipelineChoice(name, agents, options, limit)
+
+
+def _recorder(value: Any, source: str) -> str | None:
+    if value is False or value is None:
+        return None
+    if value is True:
+        value = MCAP_RECORDER
+    module, sep, attr = value.partition(":") if isinstance(value, str) else ("", "", "")
+    if not (sep and module and attr):
+        raise BenchError(f"{source}: recordings: expected true, false or 'module:Callable', got {value!r}")
+    import importlib
+
+    try:
+        factory = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        hint = " (MCAP recording needs the starenv.record.mcap module)" if value == MCAP_RECORDER else ""
+        raise BenchError(f"{source}: recordings: cannot load {value!r}{hint}: {exc}") from exc
+    if not callable(factory):
+        raise BenchError(f"{source}: recordings: {value!r} is not callable (expected a factory path -> Observer)")
+    return value
+
+
+def _scenario_path(name: Any, bench_dir: Path, where: str, source: str) -> Path:
+    if not isinstance(name, str) or not name:
+        raise BenchError(f"{source}: {where}: expected a bundled scenario name or a .toml path, got {name!r}")
+    for candidate in (name, bench_dir / name):
+        try:
+            return scenario_mod.resolve(candidate)
+        except scenario_mod.ScenarioError:
+            continue
+    names = ", ".join(scenario_mod.bundled_names())
+    raise BenchError(f"{source}: {where}: scenario {name!r} is neither a file nor a bundled scenario ({names})")
+
+
+def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = None, check: bool = True) -> Bench:
+    """Parse and validate bench TOML ``text``; with ``check`` every scenario x sweep value is loaded with its
+    overrides and every pipeline is built once per scenario (an agent that does not load fails here)."""
+    bench_dir = Path(".") if bench_dir is None else bench_dir
+    try:
+        data = tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise BenchError(f"{source}: not valid TOML: {exc}") from exc
+    top = _Checker(data, "", source)
+    name = top.get("name", Path(source).stem)
+    description = top.get("description", "")
+    for k, v in (("name", name), ("description", description)):
+        if not isinstance(v, str):
+            top.fail(k, "a string", v)
+    default_seeds = top.integers("seeds", None, 0)
+    default_steps = top.integer("steps", None, 1)
+    recorder = _recorder(top.get("recordings", False), source)
+    pipelines = {}
+    ptbl = top.get("pipelines", {})
+    pt = _Checker(ptbl, "pipelines", source)
+    for pname in ptbl:
+        if pname in PRESETS:
+            raise BenchError(f"{source}: pipelines.{pname}: {pname!r} is a built-in preset name; pick another name")
+        if not pname.replace("_", "").replace("-", "").isalnum():
+            raise BenchError(f"{source}: pipelines.{pname}: expected a name of letters, digits, '_' or '-'")
+        pipelines[pname] = _pipeline_choice(pname, _Checker(pt.get(pname), f"pipelines.{pname}", source))
+    for pname, agents in PRESETS.items():
+        pipelines[pname] = PipelineChoice(pname, dict(agents))
+    groups = top.get("runs")
+    if not isinstance(groups, list) or not groups:
+        top.fail("runs", "a non-empty array of tables ([[runs]])", groups)
+    top.finish()
+
+    runs: list[RunSpec] = []
+    for gi, group in enumerate(groups):
+        g = _Checker(group, f"runs.{gi}", source)
+        path = _scenario_path(g.get("scenario"), bench_dir, g.where("scenario"), source)
+        text_sc = path.read_text(encoding="utf-8")
+        try:
+            sc_data = tomllib.loads(text_sc)
+        except tomllib.TOMLDecodeError as exc:
+            raise BenchError(f"{source}: {g.where('scenario')}: {path}: not valid TOML: {exc}") from exc
+        sc_name = sc_data.get("name", path.stem)
+        if not isinstance(sc_name, str) or not sc_name.replace("_", "").replace("-", "").isalnum():
+            raise BenchError(f"{source}: {g.where('scenario')}: {path}: name must be letters, digits, '_' or '-'")
+        names = g.get("pipelines", ["scenario"])
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+            g.fail("pipelines", "a non-empty list of pipeline names", names)
+        for n in names:
+            if n not in pipelines:
+                g.fail("pipelines", f"names from [pipelines] or the presets ({', '.join(pipelines)})", n)
+        fixed = g.get("set", {})
+        if not isinstance(fixed, dict):
+            g.fail("set", "a table of dotted scenario keys, e.g. { \"motion.rate_dps\" = [0, 0, 5] }", fixed)
+        sweep_tbl = g.get("sweep")
+        sweep = None if sweep_tbl is None else _sweep(_Checker(sweep_tbl, g.where("sweep"), source))
+        seeds = g.integers("seeds", default_seeds, 0)
+        steps = g.integer("steps", default_steps, 1)
+        g.finish()
+        for value in sweep.values if sweep else (None,):
+            overrides = dict(fixed)
+            if sweep is not None:
+                overrides[sweep.key] = sweep.override(value)
+            where = g.where("sweep") if sweep is not None else g.where("set")
+            scenario = None
+            if check or seeds is None or steps is None:
+                try:
+                    scenario = scenario_mod.load(path, overrides)
+                except scenario_mod.ScenarioError as exc:
+                    shown = f" = {value!r}" if sweep is not None else ""
+                    raise BenchError(f"{source}: {where}{shown}: {exc}") from exc
+            if check and value == (sweep.values[0] if sweep else None):
+                for n in dict.fromkeys(names):
+                    try:
+                        pipelines[n].build(scenario)
+                    except ValueError as exc:
+                        origin = f"pipelines.{n}" if n not in PRESETS else f"{g.where('pipelines')} ({n})"
+                        raise BenchError(f"{source}: {origin}: {exc}") from exc
+            for n in names:
+                for seed in (seeds if seeds is not None else [scenario.seed]):
+                    runs.append(RunSpec(
+                        sc_name, str(path), text_sc, overrides, sweep.key if sweep else None, value,
+                        sweep.axis if sweep else None, pipelines[n], int(seed),
+                        int(steps if steps is not None else scenario.n_steps - 1),
+                    ))
+    ids = {}
+    for r in runs:
+        if r.run_id in ids:
+            raise BenchError(f"{source}: runs: the same run is listed twice ({r.scenario}, pipeline {r.pipeline.name},"
+                             f" seed {r.seed}, overrides {r.overrides})")
+        ids[r.run_id] = r
+    return Bench(name, description, source, runs, recorder)
+
+
+def load_bench(bench: str | Path, check: bool = True) -> Bench:
+    """Load a bench file by path or bundled name (see :func:`parse_bench`)."""
+    path = resolve_bench(bench)
+    return parse_bench(path.read_text(encoding="utf-8"), str(path), path.parent, check)

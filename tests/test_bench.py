@@ -325,14 +325,19 @@ def test_observer_factory_records_each_run_to_its_own_file(tmp_path, monkeypatch
     assert lines[-1] == "ran 1 run(s), reused 3"
 
 
-def test_mcap_recordings_need_the_recorder_module(tmp_path, capsys):
-    try:
-        import starenv.record.mcap  # noqa: F401
-    except ImportError:
-        assert main(["bench", str(_bench(tmp_path, "recordings = true\n" + SMALL)), "--out", str(tmp_path)]) == 2
-        assert "recordings: cannot load 'starenv.record.mcap:McapRecorder'" in capsys.readouterr().err
-    else:
-        assert parse_bench("recordings = true\n" + SMALL).recorder == "starenv.record.mcap:McapRecorder"
+def test_mcap_recordings_hold_every_scored_step_of_their_run(tmp_path):
+    from starenv.record.mcap import read_metadata, read_steps
+
+    bench = parse_bench("recordings = true\n" + SMALL.replace('"scenario", "lost_in_space"', '"scenario"'))
+    assert bench.recorder == "starenv.record.mcap:McapRecorder"
+    files = run_bench(bench, tmp_path, jobs=1, progress=False, log=_quiet)
+    for run, path in zip(bench.runs, files, strict=True):
+        rec = tmp_path / "recordings" / f"{run.run_id}.mcap"
+        steps = read_run(path)[1]
+        recorded = list(read_steps(rec))
+        assert [d.frame for d in recorded] == [s["frame"] for s in steps]
+        meta = read_metadata(rec)
+        assert meta["starenv.run"]["seed"] == str(run.seed) and meta["starenv.outcome"]["status"] == "complete"
 
 
 def test_killed_bench_resumes_where_it_stopped(tmp_path):

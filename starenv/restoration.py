@@ -8,7 +8,8 @@ Richardson-Lucy (seed 000, Eq. 26; seed 001, Eq. 24) for ``g = f (x) h + b`` wit
 
     f <- f * [ (g / (f (x) h + b + eps)) (*) h ]        ((*): correlation, convolution with h flipped)
 
-Starting from a positive ``f`` and ``g >= 0`` every iterate stays non-negative, and with ``b = 0`` and an odd-sized
+Starting from a positive ``f`` and ``g >= 0`` every iterate is non-negative (the correction factor is clipped at 0
+against FFT round-off), and with ``b = 0`` and an odd-sized
 kernel the flux ``sum f`` equals ``sum g`` after every iteration (to ``eps``): correlation is then the exact adjoint
 of the 'same'-mode convolution, so the edge terms cancel.  (With an even size the two origins differ by a pixel.)
 """
@@ -94,7 +95,7 @@ def richardson_lucy(image, psf, iterations: int, *, background=0.0, initial=None
         f = np.broadcast_to(f0, g.shape).astype(np.float64)
     conv = _SameConvolver(g.shape, h)
     for k in range(1, n_iter + 1):
-        f = f * conv.correlate(g / (conv.convolve(f) + b + EPS))
+        f = f * np.maximum(conv.correlate(g / (conv.convolve(f) + b + EPS)), 0.0)
         if callback is not None and callback(k, f):
             break
     return f
@@ -121,7 +122,7 @@ def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0) -> 
     f = np.broadcast_to(np.maximum((g - b).mean(axis=(1, 2), keepdims=True), EPS), g.shape).copy()
     conv = _SameConvolver(g.shape[1:], h)
     for _ in range(n_iter):
-        f = f * conv.correlate(g / (conv.convolve(f) + b + EPS))
+        f = f * np.maximum(conv.correlate(g / (conv.convolve(f) + b + EPS)), 0.0)
     return f
 
 

@@ -237,6 +237,6 @@ def path_kernel(path, sigma_px: float, xy_mid=None) -> tuple[np.ndarray, np.ndar
     rows_k = np.arange(m)[:, None]
     wx[rows_k, band[:, 0, None] + half[0] + cols] = frac[:, 0]
     wy[rows_k, band[:, 1, None] + half[1] + cols] = frac[:, 1]
-    kernel = wy.T @ wx
+    kernel = np.einsum("ki,kj->ij", wy, wx)  # (not BLAS: small products are slow through threaded OpenBLAS)
     kernel /= kernel.sum()
     return kernel, half.astype(np.int64)

@@ -44,16 +44,32 @@ def _kernels(psf: np.ndarray, name: str) -> np.ndarray:
 
 
 class _SameConvolver:
-    """'same'-mode convolution and correlation with fixed kernels (..., kh, kw) on images (..., h, w), by FFT."""
+    """'same'-mode (or circular) convolution and correlation with fixed kernels (..., kh, kw) on images (..., h, w),
+    by FFT."""
 
-    def __init__(self, shape: tuple[int, int], psf: np.ndarray):
+    def __init__(self, shape: tuple[int, int], psf: np.ndarray, circular: bool = False):
         h, w = shape
         kh, kw = psf.shape[-2:]
-        self.shape = (fft.next_fast_len(h + kh - 1, real=True), fft.next_fast_len(w + kw - 1, real=True))
-        self.start = ((kh - 1) // 2, (kw - 1) // 2)
+        if circular:  # periodic images: transforms of the image's own size, the kernel's origin moved to (0, 0)
+            if kh > h or kw > w:
+                raise ValueError(f"psfs shape {(kh, kw)} must not exceed the patches' {(h, w)} for circular mode")
+            self.shape, self.start = (h, w), (0, 0)
+            origin = ((kh - 1) // 2, (kw - 1) // 2)
+            flipped_origin = (kh // 2, kw // 2)
+            self.otf = self._circular_otf(psf, shape, origin)
+            self.otf_flipped = self._circular_otf(psf[..., ::-1, ::-1], shape, flipped_origin)
+        else:
+            self.shape = (fft.next_fast_len(h + kh - 1, real=True), fft.next_fast_len(w + kw - 1, real=True))
+            self.start = ((kh - 1) // 2, (kw - 1) // 2)
+            self.otf = fft.rfft2(psf, self.shape, workers=FFT_WORKERS)
+            self.otf_flipped = fft.rfft2(psf[..., ::-1, ::-1], self.shape, workers=FFT_WORKERS)
         self.size = (h, w)
-        self.otf = fft.rfft2(psf, self.shape, workers=FFT_WORKERS)
-        self.otf_flipped = fft.rfft2(psf[..., ::-1, ::-1], self.shape, workers=FFT_WORKERS)
+
+    @staticmethod
+    def _circular_otf(psf: np.ndarray, shape: tuple[int, int], origin: tuple[int, int]) -> np.ndarray:
+        padded = np.zeros((*psf.shape[:-2], *shape), dtype=psf.dtype)
+        padded[..., : psf.shape[-2], : psf.shape[-1]] = psf
+        return fft.rfft2(np.roll(padded, (-origin[0], -origin[1]), axis=(-2, -1)), workers=FFT_WORKERS)
 
     def _apply(self, x: np.ndarray, otf: np.ndarray) -> np.ndarray:
         full = fft.irfft2(fft.rfft2(x, self.shape, workers=FFT_WORKERS) * otf, self.shape, workers=FFT_WORKERS)
@@ -101,26 +117,34 @@ def richardson_lucy(image, psf, iterations: int, *, background=0.0, initial=None
     return f
 
 
-def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0) -> np.ndarray:
+def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0, circular: bool = False) -> np.ndarray:
     """Richardson-Lucy on a stack of patches, each with its own kernel, all at once (batched FFTs).
 
     ``patches`` (b, h, w) >= 0; ``psfs`` (b, kh, kw) non-negative (normalised here; pad kernels of different sizes
     with zeros about a common centre); ``background`` scalar or (b,): each patch's level.  Each patch starts from its
-    flat mean (as :func:`richardson_lucy` with ``initial=None``).  Returns (b, h, w) float64.
+    flat mean (as :func:`richardson_lucy` with ``initial=None``).  Computed in float32 when ``patches`` and ``psfs``
+    are both float32 (half the cost of the transforms), else in float64.  ``circular``: convolve periodically on the
+    patch itself (transforms of the patch size instead of patch + kernel - 1; for patches whose border holds only
+    background, where the wrap-around is harmless).  Returns (b, h, w) in the working precision.
     """
+    single = getattr(patches, "dtype", None) == np.float32 and getattr(psfs, "dtype", None) == np.float32
     g = _image("patches", patches, 3)
     if np.any(g < 0):
         raise ValueError("patches must be non-negative (Richardson-Lucy models Poisson counts)")
     h = _kernels(_image("psfs", psfs, 3), "psfs")
+    if single:
+        g, h = g.astype(np.float32), h.astype(np.float32)
     if len(h) != len(g):
         raise ValueError(f"psfs must hold one kernel per patch: {len(g)} patches, {len(h)} kernels")
     n_iter = checks.integer("iterations", iterations, 0, 100000)
     b = checks.finite("background", background)
     if np.any(b < 0) or b.shape not in ((), (len(g),)):
         raise ValueError(f"background must be a non-negative scalar or an array of shape ({len(g)},)")
-    b = np.broadcast_to(b, (len(g),))[:, None, None]
-    f = np.broadcast_to(np.maximum((g - b).mean(axis=(1, 2), keepdims=True), EPS), g.shape).copy()
-    conv = _SameConvolver(g.shape[1:], h)
+    b = np.broadcast_to(b, (len(g),))[:, None, None].astype(g.dtype)
+    f = np.broadcast_to(np.maximum((g - b).mean(axis=(1, 2), keepdims=True), EPS), g.shape).astype(g.dtype)
+    if not isinstance(circular, bool):
+        raise ValueError(f"circular must be True or False, got {circular!r}")
+    conv = _SameConvolver(g.shape[1:], h, circular)
     for _ in range(n_iter):
         f = f * np.maximum(conv.correlate(g / (conv.convolve(f) + b + EPS)), 0.0)
     return f

@@ -142,8 +142,8 @@ def test_path_kernel_centroid_is_the_path_mean_relative_to_mid(fx, fy, length, a
     kernel, origin = path_kernel(path, 0.7)
     yy, xx = np.mgrid[: kernel.shape[0], : kernel.shape[1]]
     centroid = np.array([(kernel * xx).sum(), (kernel * yy).sum()])
-    # Up to the 4.5-sigma band cut (7e-6 of the light, off-centre by a fraction of a pixel).
-    np.testing.assert_allclose(centroid - origin, path.mean(axis=0) - mid, atol=1e-5)
+    # Up to the 4.5-sigma band cut: 7e-6 of the light, cut unevenly (the band starts on a whole pixel) at ~3.5 px.
+    np.testing.assert_allclose(centroid - origin, path.mean(axis=0) - mid, atol=3e-5)
 
 
 def test_gyro_rotation_constant_and_piecewise_rates():

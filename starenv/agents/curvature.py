@@ -165,6 +165,16 @@ def curvature_filter(image: np.ndarray, threshold: float | None = None, iteratio
     return f
 
 
+def centre_kernel(step, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The motion kernel (normalised, centred) of a star at head ``head``'s principal point over the exposure
+    ``time_s -/+ exposure_s / 2``, from the step's gyro samples (``starenv.psf``), and its extent (2,) px (x, y)."""
+    camera = step.cameras[head]
+    t0 = step.time_s - 0.5 * step.exposure_s
+    path = star_paths(camera, step.gyro, t0, t0 + step.exposure_s, [[camera.cx, camera.cy]])[0]
+    kernel, _ = path_kernel(path, sigma_px)
+    return kernel, np.ptp(path, axis=0)
+
+
 def window_centroids(image: np.ndarray, boxes: np.ndarray, floor_fraction: float = 0.0) -> np.ndarray:
     """Centre of mass (n, 2) px (x = column, y = row) of ``image`` in each box ``(x0, y0, x1, y1)`` (end-exclusive),
     each pixel weighted by its value less ``floor_fraction`` times the box's maximum (negative weights count as 0);
@@ -241,13 +251,6 @@ class CurvatureRLDeblurrer:
         self.max_stars = checks.integer("max_stars", max_stars, 1, 10000)
         self.last_info: dict = {}
 
-    def kernel(self, camera, step) -> tuple[np.ndarray, np.ndarray]:
-        """The motion kernel of the image centre over the exposure (``starenv.psf``) and its blur extent (2,) px."""
-        t0 = step.time_s - 0.5 * step.exposure_s
-        path = star_paths(camera, step.gyro, t0, t0 + step.exposure_s, [[camera.cx, camera.cy]])[0]
-        kernel, _ = path_kernel(path, self.kernel_sigma_px)
-        return kernel, np.ptp(path, axis=0)
-
     def watched_stars(self, image: np.ndarray, level: float, sigma: float, kernel: np.ndarray) -> np.ndarray:
         """Boxes ``(x0, y0, x1, y1)`` around the brightest stars of a denoised frame: the frame matched-filtered with
         the motion kernel, thresholded at ``detect_sigma`` times its noise, each blob grown by the kernel size."""
@@ -266,7 +269,6 @@ class CurvatureRLDeblurrer:
                          np.minimum(x + ww + grow_x, w), np.minimum(y + hh + grow_y, h)], axis=1)
 
     def deblur(self, image: np.ndarray, head: int, step) -> np.ndarray:
-        camera = step.cameras[head]
         t_start = time.perf_counter()
         raw = np.asarray(image, dtype=np.float64)
         sigma = noise_sigma(raw)
@@ -274,7 +276,7 @@ class CurvatureRLDeblurrer:
         denoised = curvature_filter(raw, t, self.denoise_iterations, self.alpha)
         t_denoise = time.perf_counter() - t_start
         level = float(np.median(denoised))
-        kernel, extent = self.kernel(camera, step)
+        kernel, extent = centre_kernel(step, head, self.kernel_sigma_px)
         boxes = self.watched_stars(denoised, level, sigma, kernel)
         eps = np.maximum(self.eps_min_px, self.eps_per_px * extent)
         stop = CentroidStop(boxes, eps, self.max_iterations, CENTROID_FLOOR)

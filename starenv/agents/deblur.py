@@ -32,7 +32,7 @@ from starenv.restoration import richardson_lucy, richardson_lucy_batch, wiener
 
 MAD_TO_SIGMA = 1.4826  # standard deviation per median absolute deviation of a Gaussian
 BACKGROUND_STRIDE = 4  # every n-th pixel (each axis) enters the robust background estimate
-PATCH_STEP_PX = 16  # patch sizes are rounded up to multiples of this, one Richardson-Lucy batch per size
+PATCH_STEP_PX = 8  # patch sizes are rounded up to multiples of this, one Richardson-Lucy batch per size
 
 
 def robust_background(image: np.ndarray) -> tuple[float, float]:
@@ -100,7 +100,7 @@ class RichardsonLucyDeblurrer:
 class WienerDeblurrer:
     """Full-frame Wiener filter with one kernel (the frame centre's) and a constant noise-to-signal ratio ``nsr``."""
 
-    def __init__(self, nsr: float = 0.01, psf_sigma_px: float = 1.0):
+    def __init__(self, nsr: float = 0.1, psf_sigma_px: float = 1.0):
         self.nsr = checks.in_range("nsr", nsr, 0.0, 1e6, low_open=True)
         self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
         self.last_info: dict = {}
@@ -129,7 +129,7 @@ class RoiDeblurrer:
     """
 
     def __init__(self, iterations: int = 20, psf_sigma_px: float = 1.0, threshold_sigma: float = 5.0,
-                 min_area_px: int = 4, margin_px: int = 4, max_patch_px: int = 256):
+                 min_area_px: int = 4, margin_px: int = 3, max_patch_px: int = 256):
         self.iterations = checks.integer("iterations", iterations, 0, 10000)
         self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
         self.threshold_sigma = checks.in_range("threshold_sigma", threshold_sigma, 0.0, 100.0, low_open=True)

@@ -275,3 +275,24 @@ def band_fractions(points: np.ndarray, psf_sigma_px: float) -> tuple[np.ndarray,
     i0 = np.minimum(pos.astype(np.int64), len(table) - 2)
     w1 = (pos - i0)[..., None]
     return start.astype(np.int64), table[i0] * (1.0 - w1) + table[i0 + 1] * w1
+
+
+def still_image(xy: np.ndarray, electrons: np.ndarray, shape: tuple[int, int], psf_sigma_px: float) -> np.ndarray:
+    """Noise-free float64 image (height, width) in e- of still point sources: each star's ``electrons`` spread by the
+    renderer's pixel-integrated Gaussian PSF (:func:`band_fractions`) about its position ``xy`` (n, 2) px."""
+    xy = checks.finite("xy", xy).reshape(-1, 2)
+    electrons = checks.finite("electrons", electrons).reshape(-1)
+    if len(electrons) != len(xy):
+        raise ValueError(f"electrons must hold one value per position: {len(xy)} positions, {len(electrons)} values")
+    height, width = shape
+    band, frac = band_fractions(xy, psf_sigma_px)  # (n, 2), (n, 2, n_band)
+    n_band = frac.shape[-1]
+    cols = band[:, 0, None] + np.arange(n_band)  # (n, n_band)
+    rows = band[:, 1, None] + np.arange(n_band)
+    values = electrons[:, None, None] * frac[:, 1, :, None] * frac[:, 0, None, :]  # (n, rows, cols)
+    r = np.broadcast_to(rows[:, :, None], values.shape)
+    c = np.broadcast_to(cols[:, None, :], values.shape)
+    on = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+    image = np.zeros(height * width)
+    np.add.at(image, r[on] * width + c[on], values[on])
+    return image.reshape(height, width)

@@ -107,7 +107,8 @@ def _restoration_scores(env, pipeline, truth: dict) -> dict[str, float | None]:
     """``restoration_*`` record entries of the frame the pipeline just processed (empty without a deblurrer): each
     restored head scored (:func:`~starenv.scoring.score_restoration`) with the pipeline's own detector against the
     frame's truth and its still, noise-free reference, pooled over heads."""
-    if pipeline.agents.get("deblurrer") is None:
+    agents = getattr(pipeline, "agents", None)  # any policy with latency_s and source can drive an episode
+    if not isinstance(agents, dict) or agents.get("deblurrer") is None:
         return {}
     base = env.unwrapped
     per_head = []
@@ -116,6 +117,6 @@ def _restoration_scores(env, pipeline, truth: dict) -> dict[str, float | None]:
             continue
         stars = StarTruth(**{k: np.asarray(v) for k, v in truth["stars"][h].items()})
         clean = base.sensor.still_frame(h, stars)
-        per_head.append(score_restoration(stars, pair[0], pair[1], pipeline.agents["detector"], base.cameras[h],
+        per_head.append(score_restoration(stars, pair[0], pair[1], agents["detector"], base.cameras[h],
                                           clean, pipeline.deblur_info[h]))
     return pool_restoration(per_head)

@@ -19,12 +19,17 @@ only where ``E >= threshold``.  Decisions the paper leaves open:
   The paper's alpha = 1 and 3 passes are the defaults.
 
 Deblurring (:class:`CurvatureRLDeblurrer`).  Richardson-Lucy (Eq. 24) with one motion kernel per frame: the path
-across the exposure of a star at the image centre, from the gyro samples (``starenv.psf``).  Stopping (Eq. 25):
-after iteration ``k + 1`` the tracked stars' centroids ``c_{k-1}, c_k, c_{k+1}`` (centre of mass of the estimate in
-a window around each star found on the denoised frame) must satisfy, per axis and for every tracked star,
-``| |c_{k+1} - c_k| - |c_k - c_{k-1}| | <= eps(blur)``.  The paper gives no form for ``eps``; we take
-``eps(L) = max(eps_min_px, eps_per_px * L)`` with ``L`` the kernel's extent along that axis (px), and cap the
-iterations at ``max_iterations``.  The earliest possible stop is after iteration 3 (three iterates are needed).
+across the exposure of a star at the image centre, from the gyro samples (``starenv.psf``); the frame's median is
+the background term and the first estimate is RL's flat default (the paper gives no ``f^(0)``): started from the
+frame less its background instead, the watched centroids move at a steady pace in the first iterations, so the
+second difference of Eq. 25 vanishes and the rule fires at iteration 3 or 4, before the trails are restored
+(measured on the tests' two-star frame: 0.2 px errors at iteration 4, under 0.1 px from iteration 20).
+Stopping (Eq. 25): after iteration ``k + 1`` the tracked stars' centroids ``c_{k-1}, c_k, c_{k+1}`` (centre of
+mass of the estimate in a window around each star found on the denoised frame) must satisfy, per axis and for
+every tracked star, ``| |c_{k+1} - c_k| - |c_k - c_{k-1}| | <= eps(blur)``.  The paper gives no form for
+``eps``; we take ``eps(L) = max(eps_min_px, eps_per_px * L)`` with ``L`` the kernel's extent along that axis (px),
+and cap the iterations at ``max_iterations``.  The earliest possible stop is after iteration 3 (three iterates
+are needed).
 """
 
 from __future__ import annotations
@@ -280,8 +285,8 @@ class CurvatureRLDeblurrer:
         boxes = self.watched_stars(denoised, level, sigma, kernel)
         eps = np.maximum(self.eps_min_px, self.eps_per_px * extent)
         stop = CentroidStop(boxes, eps, self.max_iterations, CENTROID_FLOOR)
-        restored = richardson_lucy(np.maximum(denoised, 0.0), kernel, self.max_iterations,
-                                   background=level, callback=stop)
+        restored = richardson_lucy(np.maximum(denoised, 0.0), kernel, self.max_iterations, background=level,
+                                   callback=stop)
         self.last_info = {"iterations": stop.iterations, "converged": stop.converged, "stars_watched": len(boxes),
                           "denoise_threshold": t, "denoise_s": t_denoise, "total_s": time.perf_counter() - t_start}
         return restored + level

@@ -3,7 +3,7 @@
 Run with ``python benchmarks/deblur_speed.py [--rate-dps 5] [--iterations 20] [--repeats 3]``.  The frame is frame 1 of
 the bundled ``paper_002`` scenario (1024 x 1024, f = 4875 px, 92 ms exposure) turning at ``--rate-dps`` (resultant,
 equal on the three body axes; 5 deg/s smears stars over 30-35 px).  Timed side by side in one run (median of
-``--repeats``):
+``--repeats`` rounds, each running every method once in turn):
 
 * ``skimage.restoration.richardson_lucy`` on the full frame with the kernel of a star at the frame centre (float64,
   ``clip=False``), the baseline of the speed ratios;
@@ -59,13 +59,16 @@ def smeared_frame(rate_dps: float, seed: int):
     return step, info["truth"]["stars"][0], base.scenario.heads[0].psf_sigma_px
 
 
-def timed(fn, repeats: int):
-    out, times = None, []
+def interleaved(calls: dict, repeats: int) -> tuple[dict, dict]:
+    """Each call's last result and median wall time (s) over ``repeats`` rounds that run every call once, in turn,
+    so that load from other processes on a shared machine falls on all of them alike."""
+    results, times = {}, {name: [] for name in calls}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return out, statistics.median(times)
+        for name, call in calls.items():
+            t0 = time.perf_counter()
+            results[name] = call()
+            times[name].append(time.perf_counter() - t0)
+    return results, {name: statistics.median(t) for name, t in times.items()}
 
 
 def main() -> None:
@@ -89,19 +92,17 @@ def main() -> None:
           f"median of {args.repeats}")
 
     data = image.astype(np.float64)
-    runs = {}
-    estimate, runs["skimage richardson_lucy (full frame)"] = timed(
-        lambda: skimage_rl(data, kernel, args.iterations, clip=False), args.repeats)
-    restored = {"skimage richardson_lucy (full frame)": resharpen(data, estimate, kernel, sigma)}
+    skimage_name = "skimage richardson_lucy (full frame)"
     agents = {
         "starenv RichardsonLucyDeblurrer (full frame)": RichardsonLucyDeblurrer(args.iterations, psf_sigma_px=sigma),
         "starenv RoiDeblurrer": RoiDeblurrer(args.iterations, psf_sigma_px=sigma),
         "starenv WienerDeblurrer (full frame)": WienerDeblurrer(psf_sigma_px=sigma),
     }
-    infos = {}
-    for name, agent in agents.items():
-        restored[name], runs[name] = timed(lambda agent=agent: agent.deblur(image, 0, step), args.repeats)
-        infos[name] = agent.last_info
+    calls = {skimage_name: lambda: skimage_rl(data, kernel, args.iterations, clip=False)}
+    calls.update({name: (lambda agent=agent: agent.deblur(image, 0, step)) for name, agent in agents.items()})
+    restored, runs = interleaved(calls, args.repeats)
+    restored[skimage_name] = resharpen(data, restored[skimage_name], kernel, sigma)
+    infos = {name: agent.last_info for name, agent in agents.items()}
 
     base = runs["skimage richardson_lucy (full frame)"]
     xy_mid = np.asarray(truth["xy_mid"])

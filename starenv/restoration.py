@@ -150,6 +150,20 @@ def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0, cir
     return f
 
 
+def convolve_batch(images, psfs, *, circular: bool = False) -> np.ndarray:
+    """Convolution of a stack of images (b, h, w) with kernels (b, kh, kw) (or one kernel (1, kh, kw) for all),
+    'same' mode with zero padding or, with ``circular``, periodic on the image itself (kernels not normalised; float32
+    when both inputs are float32, else float64)."""
+    single = getattr(images, "dtype", None) == np.float32 and getattr(psfs, "dtype", None) == np.float32
+    x = _image("images", images, 3)
+    k = _image("psfs", psfs, 3)
+    if len(k) not in (1, len(x)):
+        raise ValueError(f"psfs must hold one kernel per image or a single one: {len(x)} images, {len(k)} kernels")
+    if single:
+        x, k = x.astype(np.float32), k.astype(np.float32)
+    return _SameConvolver(x.shape[1:], k, circular).convolve(x)
+
+
 def wiener(image, psf, nsr) -> np.ndarray:
     """Frequency-domain Wiener deconvolution: ``F = conj(H) G / (|H|^2 + nsr)`` (float64 (H, W)).
 

@@ -28,7 +28,7 @@ from starenv import checks
 from starenv.agents.base import StepInput
 from starenv.optics import Camera
 from starenv.psf import path_kernel, star_paths
-from starenv.restoration import richardson_lucy, richardson_lucy_batch, wiener
+from starenv.restoration import convolve_batch, richardson_lucy, richardson_lucy_batch, wiener
 
 MAD_TO_SIGMA = 1.4826  # standard deviation per median absolute deviation of a Gaussian
 BACKGROUND_STRIDE = 4  # every n-th pixel (each axis) enters the robust background estimate
@@ -136,6 +136,9 @@ class RoiDeblurrer:
         self.min_area_px = checks.integer("min_area_px", min_area_px, 1, 10**6)
         self.margin_px = checks.integer("margin_px", margin_px, 0, 100)
         self.max_patch_px = checks.integer("max_patch_px", max_patch_px, 8, 4096)
+        radius = int(np.ceil(4.0 * self.psf_sigma_px))
+        g = cv2.getGaussianKernel(2 * radius + 1, self.psf_sigma_px, cv2.CV_64F)
+        self._gaussian = (g @ g.T).astype(np.float32)  # the kernel cv2.GaussianBlur applies in resharpen()
         self.last_info: dict = {}
 
     def candidates(self, data: np.ndarray, level: float, noise: float, streak: np.ndarray) -> np.ndarray:
@@ -196,9 +199,13 @@ class RoiDeblurrer:
         rows = py0[:, None] + np.arange(ph)[None, :]
         cols = px0[:, None] + np.arange(pw)[None, :]
         patches = data[rows[:, :, None], cols[:, None, :]]
-        estimate = richardson_lucy_batch(np.maximum(patches, 0.0).astype(np.float32), psfs.astype(np.float32),
-                                         self.iterations, background=level, circular=True)
-        restored = resharpen(patches, estimate.astype(np.float64), psfs, self.psf_sigma_px)
+        psfs = psfs.astype(np.float32)
+        estimate = richardson_lucy_batch(np.maximum(patches, 0.0).astype(np.float32), psfs, self.iterations,
+                                         background=level, circular=True)
+        # resharpen() on the batch, with the same periodic convolutions (the margins that wrap are not pasted).
+        model = convolve_batch(estimate, psfs / psfs.sum(axis=(1, 2), keepdims=True), circular=True)
+        still = convolve_batch(estimate, self._gaussian[None], circular=True)
+        restored = patches - model + still
         for i, j in enumerate(idx):
             (x0, y0), (x1, y1) = lo[j], hi[j]
             out[y0 : y1 + 1, x0 : x1 + 1] = restored[i, y0 - py0[i] : y1 + 1 - py0[i], x0 - px0[i] : x1 + 1 - px0[i]]

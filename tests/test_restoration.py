@@ -6,7 +6,7 @@ from scipy.signal import fftconvolve
 from skimage.restoration import richardson_lucy as sk_richardson_lucy
 from skimage.restoration import wiener as sk_wiener
 
-from starenv.restoration import richardson_lucy, richardson_lucy_batch, wiener
+from starenv.restoration import convolve_batch, richardson_lucy, richardson_lucy_batch, wiener
 
 
 def random_case(seed: int, shape=(48, 64), kernel=(7, 9)):
@@ -70,6 +70,43 @@ def test_batch_equals_one_patch_at_a_time():
     for i in range(5):
         want = richardson_lucy(patches[i], psfs[i], 15, background=background[i])
         np.testing.assert_allclose(got[i], want, rtol=1e-10, atol=1e-12)
+
+
+def test_convolve_batch_same_and_circular_modes():
+    rng = np.random.default_rng(8)
+    images = rng.random((3, 20, 24))
+    psfs = rng.random((3, 7, 5))
+    same = convolve_batch(images, psfs)
+    for i in range(3):
+        np.testing.assert_allclose(same[i], fftconvolve(images[i], psfs[i], mode="same"), atol=1e-12)
+    # Circular: the kernel's origin (3, 2) moved to (0, 0), products of the image-sized DFTs.
+    padded = np.zeros((3, 20, 24))
+    padded[:, :7, :5] = psfs
+    otf = np.fft.rfft2(np.roll(padded, (-3, -2), axis=(1, 2)))
+    want = np.fft.irfft2(np.fft.rfft2(images) * otf, (20, 24))
+    np.testing.assert_allclose(convolve_batch(images, psfs, circular=True), want, atol=1e-12)
+    # float32 in, float32 out (to float32 precision); one kernel for the whole stack.
+    one = convolve_batch(images.astype(np.float32), psfs[:1].astype(np.float32), circular=True)
+    assert one.dtype == np.float32
+    np.testing.assert_allclose(one[2], convolve_batch(images[2:], psfs[:1], circular=True)[0], rtol=1e-5, atol=1e-5)
+
+
+def test_circular_batch_equals_same_mode_away_from_the_border():
+    # A trail well inside a patch with a flat background: periodic and zero-padded RL put the same light at the
+    # same place (their flat remainders differ: zero padding starves the border, which spreads inwards).
+    patches = np.full((2, 48, 48), 20.0)
+    patches[:, 22:26, 14:34] += 50.0
+    psfs = np.zeros((2, 9, 21))
+    psfs[:, 4, :] = 1.0
+    a = richardson_lucy_batch(patches, psfs, 10, background=20.0)
+    b = richardson_lucy_batch(patches.astype(np.float32), psfs.astype(np.float32), 10, background=20.0,
+                              circular=True)
+    star = (slice(None), slice(20, 28), slice(18, 30))
+    np.testing.assert_allclose(b[star].sum(axis=(1, 2)), a[star].sum(axis=(1, 2)), rtol=0.01)
+    yy, xx = np.mgrid[20:28, 18:30]
+    for img in (a[0], b[0]):
+        w = img[20:28, 18:30]
+        assert ((w * xx).sum() / w.sum(), (w * yy).sum() / w.sum()) == pytest.approx((23.5, 23.5), abs=0.05)
 
 
 def test_wiener_matches_skimage_with_identity_regulariser():

@@ -179,3 +179,20 @@ def test_bad_input_names_the_field():
         path_kernel(np.zeros((4, 2)), 0.0)
     with pytest.raises(ValueError, match="exposure_s"):
         boresight_blur(np.zeros((1, 2)), 0.1, -1.0, cam)
+
+
+def test_linear_blur_kernel_is_the_uniform_line_psf():
+    # Seed 000's Eqs. 15/21: light spread evenly along the trail; rasterised, its variance along the trail is that of
+    # m evenly spaced points over the length L plus the pixel-integrated Gaussian's sigma^2 + 1/12.
+    cam_like = type("Cam", (), {"cx": 511.5, "cy": 511.5})()
+    blur = boresight_blur(np.array([[811.5, 511.5]]), math.radians(20.0), 0.1, cam_like)  # vertical ~10.5 px chord
+    length = float(blur.length[0])
+    m = blur.paths().shape[1]
+    kernel, origin = blur.kernels(1.0)[0]
+    assert kernel.sum() == pytest.approx(1.0, abs=1e-12)
+    yy, xx = np.mgrid[: kernel.shape[0], : kernel.shape[1]]
+    my = (kernel * yy).sum()
+    assert my == pytest.approx(origin[1], abs=1e-5)
+    var_y = (kernel * (yy - my) ** 2).sum()
+    assert var_y == pytest.approx((length / m) ** 2 * (m * m - 1) / 12.0 + 1.0 + 1 / 12, rel=1e-5)
+    assert blur.angle[0] == pytest.approx(-math.pi / 2, abs=1e-12)  # roll about +Z moves a star on +u towards -v

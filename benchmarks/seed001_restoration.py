@@ -9,6 +9,7 @@ kernels are centred on mid-exposure).  A star counts as failed when the window h
 sigmas of the restored frame or its error exceeds 2 px; failed stars are counted, not averaged.
 
     python benchmarks/seed001_restoration.py [--rates 1 2 4] [--frames 4] [--seed 1] [--min-electrons 0]
+        [--pointing RA DEC]
 """
 
 from __future__ import annotations
@@ -54,10 +55,13 @@ def centroid_errors(restored: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, i
     return err[ok], int((~ok).sum())
 
 
-def run(rates, frames: int, seed: int, min_electrons: float = 0.0) -> list[dict]:
+def run(rates, frames: int, seed: int, min_electrons: float = 0.0, pointing=None) -> list[dict]:
     rows = []
     for rate in rates:
-        env = StarSensorEnv("paper_001", overrides={"motion.rate_dps": [rate, rate, 0.0]})
+        overrides = {"motion.rate_dps": [rate, rate, 0.0]}
+        if pointing is not None:
+            overrides |= {"motion.initial_ra_deg": pointing[0], "motion.initial_dec_deg": pointing[1]}
+        env = StarSensorEnv("paper_001", overrides=overrides)
         full_scale = env.scenario.heads[0].detector.max_dn
         agents = {"Wiener (nsr 0.01)": WienerDeblurrer(), "curvature + RL, Eq. 25 stop": CurvatureRLDeblurrer()}
         stats = {name: {"err": [], "fail": 0, "ms": [], "iters": []} for name in agents}
@@ -102,10 +106,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=4, help="frames per rate")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--min-electrons", type=float, default=0.0, help="score only stars at least this bright (e-)")
+    parser.add_argument("--pointing", type=float, nargs=2, metavar=("RA", "DEC"), help="initial boresight, deg")
     args = parser.parse_args()
-    rows = run(args.rates, args.frames, args.seed, args.min_electrons)
-    print(f"paper_001, w_x = w_y, {args.frames} frames per rate, seed {args.seed}, stars >= {args.min_electrons:g} e-; "
-          "errors vs the true mid-exposure position, px")
+    rows = run(args.rates, args.frames, args.seed, args.min_electrons, args.pointing)
+    where = "scenario pointing"
+    if args.pointing is not None:
+        where = f"pointing RA {args.pointing[0]:g}, Dec {args.pointing[1]:g}"
+    print(f"paper_001, w_x = w_y, {where}, {args.frames} frames per rate, seed {args.seed}, stars >= "
+          f"{args.min_electrons:g} e-; errors vs the true mid-exposure position, px")
     print("| w (deg/s) | restorer | stars | failed | mean abs ex | mean abs ey | max abs ex | max abs ey | "
           "share < 0.1 px both axes | RL iterations (median) | ms / frame (median) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")

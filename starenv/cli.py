@@ -108,13 +108,16 @@ def cmd_run(args) -> int:
     print(f"  availability (error < {sc.availability_threshold_arcsec:g} arcsec): {avail:.3f}")
     for key, unit in (("attitude_error_arcsec", "arcsec"), ("cross_boresight_error_arcsec", "arcsec"),
                       ("roll_error_arcsec", "arcsec"), ("centroid_error_px_mean", "px"), ("id_rate", ""),
-                      ("false_id_rate", ""), ("solved", ""), ("prediction_error_px_mean", "px")):
+                      ("false_id_rate", ""), ("solved", ""), ("prediction_error_px_mean", "px"),
+                      ("restoration_centroid_error_blurred_px", "px"), ("restoration_centroid_error_px", "px"),
+                      ("restoration_stars_before", ""), ("restoration_stars_after", ""),
+                      ("restoration_psnr_gain_db", "dB"), ("restoration_iterations", "")):
         if key in summary:
             v = summary[key]
-            print(f"  {key:30s} median {v['median']:10.4g}  p95 {v['p95']:10.4g}  mean {v['mean']:10.4g} {unit}")
+            print(f"  {key:38s} median {v['median']:10.4g}  p95 {v['p95']:10.4g}  mean {v['mean']:10.4g} {unit}")
     for key in sorted(k for k in summary if k.startswith("latency_")):
         v = summary[key]
-        print(f"  {key:30s} median {v['median']:10.3f}  p95 {v['p95']:10.3f} ms")
+        print(f"  {key:38s} median {v['median']:10.3f}  p95 {v['p95']:10.3f} ms")
     return 0
 
 

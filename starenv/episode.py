@@ -2,7 +2,9 @@
 
 ``run_episode`` is the loop every front end shares (``starenv run``, the benchmark runner, recorders): per step ``k``
 the pipeline turns observation ``k`` into an action, ``env.step`` scores it against frame ``k``'s truth, and each
-observer receives a :class:`StepLog` that holds frame ``k``, its truth, the action and its scores together.
+observer receives a :class:`StepLog` that holds frame ``k``, its truth, the action and its scores together.  When the
+pipeline has a deblurrer, the flat record also holds the restoration scores of frame ``k`` (``restoration_*`` keys,
+pooled over heads, see :func:`~starenv.scoring.score_restoration`).
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from starenv.scoring import flatten
+from starenv.render import StarTruth
+from starenv.scoring import flatten, pool_restoration, score_restoration
 
 
 @dataclass
@@ -77,8 +80,10 @@ def run_episode(env, pipeline=None, seed: int | None = None, steps: int | None =
             action = pipeline(obs) if pipeline is not None else None
             latency = dict(pipeline.latency_s) if pipeline is not None else {}
             source = pipeline.source if pipeline is not None else "none"
+            restoration = _restoration_scores(env, pipeline, truth) if pipeline is not None else {}
             next_obs, _, terminated, truncated, info = env.step(action)
             record = flatten(info["scores"], latency)
+            record.update(restoration)
             result.records.append(record)
             log = StepLog(k, obs, truth, action, info["scores"], record, source, latency, pipeline)
             for o in started:
@@ -96,3 +101,22 @@ def run_episode(env, pipeline=None, seed: int | None = None, steps: int | None =
         for o in started:
             o.close(error)
     return result
+
+
+def _restoration_scores(env, pipeline, truth: dict) -> dict[str, float | None]:
+    """``restoration_*`` record entries of the frame the pipeline just processed (empty without a deblurrer): each
+    restored head scored (:func:`~starenv.scoring.score_restoration`) with the pipeline's own detector against the
+    frame's truth and its still, noise-free reference, pooled over heads."""
+    agents = getattr(pipeline, "agents", None)  # any policy with latency_s and source can drive an episode
+    if not isinstance(agents, dict) or agents.get("deblurrer") is None:
+        return {}
+    base = env.unwrapped
+    per_head = []
+    for h, pair in enumerate(pipeline.restorations):
+        if pair is None:
+            continue
+        stars = StarTruth(**{k: np.asarray(v) for k, v in truth["stars"][h].items()})
+        clean = base.sensor.still_frame(h, stars)
+        per_head.append(score_restoration(stars, pair[0], pair[1], agents["detector"], base.cameras[h],
+                                          clean, pipeline.deblur_info[h]))
+    return pool_restoration(per_head)

@@ -188,7 +188,7 @@ class StarRenderer:
         """Pixel-integrated Gaussian PSF summed over each star's instants; ``paths`` is (stars, instants, 2) px.
 
         At instant k the PSF covers a band of ``n_band`` columns and rows around the star; the fraction of light in
-        each (a difference of ``erf`` at the pixel edges) comes from :attr:`_band_table`.  Scattered into
+        each (a difference of ``erf`` at the pixel edges) comes from :func:`band_fractions`.  Scattered into
         (instants, width) matrices Wx and Wy over the star's window, the patch is one matrix product
         ``Wy^T diag(w) Wx``.  Stars are batched by window size (rounded up to 8 px).  Returns the merged sparse
         signal, each star's on-sensor electrons and its peak pixel's electrons.
@@ -198,14 +198,8 @@ class StarRenderer:
         if n == 0:
             empty = StarSignal(np.zeros(0, np.int64), np.zeros(0, np.float32), (cam.height, cam.width))
             return empty, np.zeros(0), np.zeros(0)
-        table = self._band_table
-        n_band = table.shape[1]
-        start = np.floor(paths - self._band_radius)
-        band = start.astype(np.int64)  # (n, k, 2): first column / row of each instant's band
-        pos = (paths - start - self._band_radius) * (len(table) - 1)  # sub-pixel phase in table steps
-        i0 = np.minimum(pos.astype(np.int64), len(table) - 2)
-        w1 = (pos - i0)[..., None]
-        frac = table[i0] * (1.0 - w1) + table[i0 + 1] * w1  # (n, k, 2, n_band)
+        band, frac = band_fractions(paths, self.psf_sigma_px)
+        n_band = frac.shape[-1]
         frac[:, :, 1, :] *= weight[:, None, None]
         lo = band.min(axis=1)  # (n, 2) window origin x, y
         size = -(-(band.max(axis=1) + n_band - lo) // 8) * 8  # (n, 2) window width, height
@@ -253,18 +247,52 @@ class StarRenderer:
         """Scratch (height * width) int32 array for :meth:`_merge`; its contents are never read unwritten."""
         return np.empty(self.camera.height * self.camera.width, dtype=np.int32)
 
-    @functools.cached_property
-    def _band_radius(self) -> float:
-        return PSF_RADIUS_SIGMA * self.psf_sigma_px
 
-    @functools.cached_property
-    def _band_table(self) -> np.ndarray:
-        """Fraction of a pixel-integrated Gaussian in each of the ``n_band`` pixels of an instant's band, tabulated
-        over the PSF centre's sub-pixel phase (``BAND_TABLE_STEPS`` steps, linear interpolation: error < 1e-8)."""
-        radius = self._band_radius
-        n_band = math.ceil(2 * radius) + 2
-        phase = np.linspace(0.0, 1.0, BAND_TABLE_STEPS + 1)
-        edges = np.arange(n_band + 1) - 0.5  # pixel edges relative to the band start
-        centre = radius + phase  # PSF centre relative to the band start
-        cdf = erf((edges[None, :] - centre[:, None]) / (math.sqrt(2.0) * self.psf_sigma_px))
-        return 0.5 * np.diff(cdf, axis=1)
+@functools.lru_cache(maxsize=16)
+def _band_table(psf_sigma_px: float) -> np.ndarray:
+    """Fraction of a pixel-integrated Gaussian in each of the ``n_band`` pixels of an instant's band, tabulated
+    over the PSF centre's sub-pixel phase (``BAND_TABLE_STEPS`` steps, linear interpolation: error < 1e-8)."""
+    radius = PSF_RADIUS_SIGMA * psf_sigma_px
+    n_band = math.ceil(2 * radius) + 2
+    phase = np.linspace(0.0, 1.0, BAND_TABLE_STEPS + 1)
+    edges = np.arange(n_band + 1) - 0.5  # pixel edges relative to the band start
+    centre = radius + phase  # PSF centre relative to the band start
+    cdf = erf((edges[None, :] - centre[:, None]) / (math.sqrt(2.0) * psf_sigma_px))
+    table = 0.5 * np.diff(cdf, axis=1)
+    table.flags.writeable = False
+    return table
+
+
+def band_fractions(points: np.ndarray, psf_sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel-integrated Gaussian PSF (sigma ``psf_sigma_px`` px) of point sources at ``points`` (..., 2) px,
+    separated per axis: ``band`` (..., 2) int64, the first column / row of the ``n_band`` pixels each covers
+    (``PSF_RADIUS_SIGMA`` sigmas either side), and ``frac`` (..., 2, n_band), the fraction of the light in each
+    of those columns (index 0) and rows (index 1).  A source's pixel (col, row) gets ``frac[0, i] * frac[1, j]``."""
+    table = _band_table(float(psf_sigma_px))
+    radius = PSF_RADIUS_SIGMA * psf_sigma_px
+    start = np.floor(points - radius)
+    pos = (points - start - radius) * (len(table) - 1)  # sub-pixel phase in table steps
+    i0 = np.minimum(pos.astype(np.int64), len(table) - 2)
+    w1 = (pos - i0)[..., None]
+    return start.astype(np.int64), table[i0] * (1.0 - w1) + table[i0 + 1] * w1
+
+
+def still_image(xy: np.ndarray, electrons: np.ndarray, shape: tuple[int, int], psf_sigma_px: float) -> np.ndarray:
+    """Noise-free float64 image (height, width) in e- of still point sources: each star's ``electrons`` spread by the
+    renderer's pixel-integrated Gaussian PSF (:func:`band_fractions`) about its position ``xy`` (n, 2) px."""
+    xy = checks.finite("xy", xy).reshape(-1, 2)
+    electrons = checks.finite("electrons", electrons).reshape(-1)
+    if len(electrons) != len(xy):
+        raise ValueError(f"electrons must hold one value per position: {len(xy)} positions, {len(electrons)} values")
+    height, width = shape
+    band, frac = band_fractions(xy, psf_sigma_px)  # (n, 2), (n, 2, n_band)
+    n_band = frac.shape[-1]
+    cols = band[:, 0, None] + np.arange(n_band)  # (n, n_band)
+    rows = band[:, 1, None] + np.arange(n_band)
+    values = electrons[:, None, None] * frac[:, 1, :, None] * frac[:, 0, None, :]  # (n, rows, cols)
+    r = np.broadcast_to(rows[:, :, None], values.shape)
+    c = np.broadcast_to(cols[:, None, :], values.shape)
+    on = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+    image = np.zeros(height * width)
+    np.add.at(image, r[on] * width + c[on], values[on])
+    return image.reshape(height, width)

@@ -162,3 +162,55 @@ def summarize(records: list[dict]) -> dict[str, dict[str, float]]:
             out[k] = {"median": float(np.median(values)), "p95": float(np.percentile(values, 95)),
                       "mean": float(values.mean()), "count": len(values)}
     return out
+
+
+def psnr_db(image: np.ndarray, reference: np.ndarray) -> float:
+    """Peak signal-to-noise ratio (dB) of ``image`` against ``reference``: ``10 log10(peak^2 / MSE)``, with the peak
+    the reference's range (max - min), so a constant offset such as the bias does not count as signal."""
+    mse = float(np.mean((np.asarray(image, np.float64) - reference) ** 2))
+    peak = float(np.max(reference) - np.min(reference))
+    return float("inf") if mse == 0 else 10.0 * np.log10(peak * peak / mse)
+
+
+def score_restoration(truth: StarTruth, blurred: np.ndarray, restored: np.ndarray, detector, camera,
+                      clean: np.ndarray | None = None, info: dict | None = None,
+                      gate_px: float = CENTROID_GATE_PX) -> dict:
+    """Restoration scores of one head's frame: the same ``detector`` on the blurred and on the restored image.
+
+    Centroid errors (px, mean over matched stars) are against the true mid-exposure position ``xy_mid``, not the
+    trail centroid: a restorer undoes the trail and puts the star where it was at mid-exposure (where the attitude
+    truth is taken), while the blurred image's centre of light is the trail centroid; the two differ where the motion
+    is not uniform (arcs, acceleration).  ``stars_before`` / ``stars_after``: detections matched one-to-one to a true
+    star within ``gate_px``.  ``psnr_gain_db``: PSNR of the restored minus that of the blurred image against
+    ``clean`` (the still, noise-free frame of :meth:`starenv.sensor.StarSensor.still_frame`; None: not scored).
+    ``iterations``: ``info["iterations"]`` of the deblurrer (None when not given).
+    """
+    scores = {}
+    for key, image in (("blurred", blurred), ("restored", restored)):
+        stars = detector.detect(image, camera)
+        _, _, dist = match(stars.xy, truth.xy_mid, gate_px)
+        scores[key] = (float(dist.mean()) if len(dist) else None, len(dist))
+    gain = None
+    if clean is not None:
+        gain = psnr_db(restored, clean) - psnr_db(blurred, clean)
+    iterations = None if not info or info.get("iterations") is None else int(info["iterations"])
+    return {
+        "centroid_error_px": scores["restored"][0],
+        "centroid_error_blurred_px": scores["blurred"][0],
+        "stars_before": scores["blurred"][1],
+        "stars_after": scores["restored"][1],
+        "psnr_gain_db": gain,
+        "iterations": iterations,
+    }
+
+
+def pool_restoration(per_head: list[dict]) -> dict[str, float | None]:
+    """Restoration scores of the heads as flat ``restoration_*`` record entries: means of the heads that have a value
+    (errors, PSNR gain, iterations), sums of the star counts."""
+    rec: dict[str, float | None] = {}
+    for key in ("centroid_error_px", "centroid_error_blurred_px", "psnr_gain_db", "iterations"):
+        values = [h[key] for h in per_head if h[key] is not None]
+        rec[f"restoration_{key}"] = float(np.mean(values)) if values else None
+    for key in ("stars_before", "stars_after"):
+        rec[f"restoration_{key}"] = float(sum(h[key] for h in per_head)) if per_head else None
+    return rec

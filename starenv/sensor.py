@@ -20,7 +20,7 @@ from starenv.detector import Detector
 from starenv.drops import DropChannel
 from starenv.frames import ARCSEC
 from starenv.gyro import Gyro, GyroSamples
-from starenv.render import DETECTABLE_SNR, StarRenderer, StarTruth
+from starenv.render import DETECTABLE_SNR, StarRenderer, StarTruth, still_image
 from starenv.scenario import Scenario
 from starenv.sky import load_catalog
 
@@ -115,3 +115,15 @@ class StarSensor:
             heads=heads,
             gyro=gyro,
         )
+
+    def still_frame(self, head: int, truth: StarTruth) -> np.ndarray:
+        """Noise-free reference of head ``head``'s frame as a still sensor would see it, float64 DN (H, W): each
+        star's on-sensor electrons as the static PSF at its mid-exposure position ``xy_mid``, plus the mean
+        background (sky, stray light and dark current over the exposure), through the gain and bias; no noise, no hot
+        pixels, no ADC rounding or clipping."""
+        spec = self.scenario.heads[head]
+        cam, det = spec.camera, spec.detector
+        exposure = self.scenario.exposure_s
+        stars = still_image(truth.xy_mid, truth.electrons, (cam.height, cam.width), spec.psf_sigma_px)
+        background = (self.backgrounds[head] + det.dark_current_e_per_s) * exposure
+        return det.bias_dn + (stars + background) / det.gain_e_per_dn

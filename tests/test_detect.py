@@ -298,7 +298,7 @@ def test_bad_options_are_refused_by_name(option, value):
     "image",
     [
         np.zeros((CAM.height, CAM.width, 3), np.uint16),
-        np.zeros((CAM.height, CAM.width), np.float32),
+        np.full((CAM.height, CAM.width), np.nan, np.float32),  # float images (restored frames) must be finite
         np.zeros((CAM.height, CAM.width), bool),
         np.zeros((CAM.height - 1, CAM.width), np.uint16),
         [[0] * CAM.width] * CAM.height,

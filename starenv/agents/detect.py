@@ -105,7 +105,8 @@ def _least_median_ratio(sigma_px: float) -> float:
 
 
 class CentroidDetector:
-    """Finds stars on an integer frame and centroids them (a :class:`~starenv.agents.base.StarDetector`).
+    """Finds stars on a frame (integer DN, or float such as a restored one) and centroids them (a
+    :class:`~starenv.agents.base.StarDetector`).
 
     Options (checked; a bad one raises ``ValueError`` naming it):
 
@@ -179,8 +180,8 @@ class CentroidDetector:
         self._pair_ratio = np.array([2.0 * rho, 2.0 * rho**2, 2.0 * rho, 2.0 * rho**2])
 
     def detect(self, image: np.ndarray, camera: Camera) -> Stars:
-        """Stars on ``image`` (integer DN, shape (camera.height, camera.width)), brightest first: positions (px)
-        and flux (DN above background)."""
+        """Stars on ``image`` (DN, integer or float such as a restored frame; shape (camera.height, camera.width)),
+        brightest first: positions (px) and flux (DN above background)."""
         data = self._checked(image, camera)
         height, width = data.shape
         level, noise = self.background(data)
@@ -307,18 +308,24 @@ class CentroidDetector:
         return centre, scale, count
 
     def _checked(self, image, camera: Camera) -> np.ndarray:
-        """The image as float32 DN, after checking it is a 2-D integer array of the camera's size."""
-        if not isinstance(image, np.ndarray) or image.ndim != 2 or not np.issubdtype(image.dtype, np.integer):
+        """The image as float32 DN, after checking it is a 2-D integer or finite float array of the camera's size."""
+        numeric = isinstance(image, np.ndarray) and (np.issubdtype(image.dtype, np.integer)
+                                                      or np.issubdtype(image.dtype, np.floating))
+        if not numeric or image.ndim != 2:
             got = f"a {image.dtype} array of shape {image.shape}" if isinstance(image, np.ndarray) else type(image)
-            raise ValueError(f"image must be a 2-D integer array (DN), got {got}")
+            raise ValueError(f"image must be a 2-D integer or float array (DN), got {got}")
         if image.shape != (camera.height, camera.width):
             raise ValueError(f"image shape {image.shape} does not match the camera's {(camera.height, camera.width)}")
+        if np.issubdtype(image.dtype, np.floating) and not np.all(np.isfinite(image)):
+            raise ValueError("image must be finite (no NaN or inf)")
         return image.astype(np.float32)
 
     def _saturation(self, image: np.ndarray) -> int | None:
         """The saturation level (DN) in force for ``image``; None when no pixel counts as saturated."""
         if self.saturation_dn is not None:
             return self.saturation_dn
+        if not np.issubdtype(image.dtype, np.integer):  # a restored (float) image has no full-scale code
+            return None
         top = int(image.max())
         return top if top >= 255 and (top + 1) & top == 0 else None
 

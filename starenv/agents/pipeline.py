@@ -8,7 +8,9 @@ identified (a dropped or smeared-out frame), the predicted attitude is reported 
 the pipeline through; the estimate (solved or predicted) becomes the predictor's new state.
 
 Agents are given as instances, classes or ``"module:Class"`` strings.  Every agent call is timed:
-``latency_s`` holds the last step's wall time per role (s) and ``source`` says where the attitude came from.
+``latency_s`` holds the last step's wall time per role (s) and ``source`` says where the attitude came from.  With a
+deblurrer, ``restorations`` holds per head the last step's ``(raw, restored)`` images (None for a head without a
+valid frame) and ``deblur_info`` the deblurrer's ``last_info`` after that head (``{}`` if it sets none).
 """
 
 from __future__ import annotations
@@ -96,6 +98,8 @@ class Pipeline:
         self.gyro_dt = 0.0
         self.latency_s: dict[str, float] = {}
         self.source = "none"
+        self.restorations: list[tuple[np.ndarray, np.ndarray] | None] = []
+        self.deblur_info: list[dict] = []
 
     @classmethod
     def for_scenario(cls, scenario, agents: dict | None = None, options: dict | None = None) -> Pipeline:
@@ -152,13 +156,18 @@ class Pipeline:
         if ag["predictor"] is not None:
             prediction = self._timed("predictor", ag["predictor"].predict, step)
         found = []
+        self.restorations = [None] * len(self.cameras) if ag["deblurrer"] is not None else []
+        self.deblur_info = [{} for _ in self.restorations]
         for h, cam in enumerate(self.cameras):
             if not step.frame_valid[h]:
                 found.append(Stars(np.zeros((0, 2))))
                 continue
             image = step.images[h][: cam.height, : cam.width]
             if ag["deblurrer"] is not None:
+                raw = image
                 image = self._timed("deblurrer", ag["deblurrer"].deblur, image, h, step)
+                self.restorations[h] = (raw, image)
+                self.deblur_info[h] = dict(getattr(ag["deblurrer"], "last_info", {}) or {})
             stars = self._timed("detector", ag["detector"].detect, image, cam)
             if ag["corrector"] is not None:
                 stars = self._timed("corrector", ag["corrector"].correct, stars, h, cam)

@@ -1,0 +1,55 @@
+"""``IterationNetDeblurrer``: seed 000's improved Richardson-Lucy, the iteration count from the EBPNN."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from starenv import checks
+from starenv.agents.curvature import centre_kernel
+from starenv.agents.neural.ebpnn import EnsembleNet
+from starenv.agents.neural.features import initial_estimate, sumfc
+from starenv.restoration import richardson_lucy
+
+WEIGHTS = Path(__file__).with_name("iteration_net.npz")
+KERNEL_SIGMA_PX = 0.5  # the Gaussian each kernel sample is drawn with, in training and here
+
+
+class IterationNetDeblurrer:
+    """Full-frame Richardson-Lucy with the frame centre's gyro kernel (seed 000's single kernel per image) and the
+    iteration count the EBPNN predicts from the kernel's SUMFC (rounded, clipped to [1, ``max_iterations``]).
+
+    ``weights``: an ``.npz`` from ``python -m starenv.agents.neural.train`` (default: the shipped
+    ``iteration_net.npz`` beside this module).  The frame's median is the background term; RL starts from the frame
+less that level, as in training.  Returns the restored
+    frame plus that level (float64 DN) and sets ``last_info`` (``iterations``, ``sumfc``, timings in s).
+    """
+
+    def __init__(self, weights: str | Path | None = None, max_iterations: int = 300):
+        path = WEIGHTS if weights is None else Path(weights)
+        if not path.is_file():
+            raise ValueError(f"weights: no file {path}; make one with python -m starenv.agents.neural.train --out PATH")
+        self.net = EnsembleNet.load(path)
+        self.max_iterations = checks.integer("max_iterations", max_iterations, 1, 100000)
+        self.last_info: dict = {}
+
+    def iterations_for(self, kernel: np.ndarray) -> tuple[int, float]:
+        """The predicted iteration count for a kernel, and the kernel's SUMFC."""
+        feature = sumfc(kernel)
+        n = int(np.clip(round(self.net.predict(feature)), 1, self.max_iterations))
+        return n, feature
+
+    def deblur(self, image: np.ndarray, head: int, step) -> np.ndarray:
+        t0 = time.perf_counter()
+        data = checks.finite("image", image)
+        kernel, _ = centre_kernel(step, head, KERNEL_SIGMA_PX)
+        n, feature = self.iterations_for(kernel)
+        t_predict = time.perf_counter() - t0
+        level = float(np.median(data))
+        restored = richardson_lucy(np.maximum(data, 0.0), kernel, n, background=level,
+                                   initial=initial_estimate(data, level))
+        self.last_info = {"iterations": n, "sumfc": feature, "predict_s": t_predict,
+                          "total_s": time.perf_counter() - t0}
+        return restored + level

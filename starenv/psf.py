@@ -1,0 +1,242 @@
+"""The blur kernel of a star under rotation, in pixels of one head's image (camera frame).
+
+Kinematics.  The attitude ``A`` (inertial -> body) obeys ``dA/dt = -[w x] A`` with ``w`` the body rate (rad/s,
+body frame), so a star's camera-frame direction ``c = M A r`` (``M`` the body -> camera mounting) turns as
+``dc/dt = -w_c x c`` with ``w_c = M w``.  With ``x = (u - cx)/fx``, ``y = (v - cy)/fy`` (ideal pinhole) this moves
+the image at ``du/dt = fx (-w_y (1 + x^2) + w_x x y + w_z y)`` and ``dv/dt = fy (w_x (1 + y^2) - w_y x y - w_z x)``.
+
+Two models:
+
+* seed 000's *linear* kernels (its Sec. 3.1): :func:`cross_boresight_blur` (Eqs. 9-15: rotation about the camera X
+  and Y axes; each axis moves the star along one image axis by ``f [tan(alpha + w T) - tan(alpha)]``, Eq. 9, with
+  ``alpha`` the star's field angle along that axis) and :func:`boresight_blur` (Eqs. 16-21: roll about the boresight
+  moves the star on a circle about the principal point; the arc is replaced by its chord).  Each gives a straight
+  trail (:class:`LinearBlur`) centred on the mid-exposure position, in ideal pinhole pixels (no distortion, as in the
+  paper).  Signs follow the kinematics above (the paper's "clockwise" rotations have the opposite sense).
+* the exact, space-variant path: :func:`star_paths` integrates the gyro's average rates as rotations and maps each
+  star's mid-exposure direction through the calibrated camera (distortion included), so arcs, curved trails of
+  non-uniform motion and the field-angle stretching are all in it.
+
+:func:`path_kernel` rasterises a path into a normalised kernel with the same pixel-integrated Gaussian as the
+renderer (:func:`starenv.render.band_fractions`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from starenv import checks
+from starenv.agents.base import GyroRecord
+from starenv.optics import Camera
+from starenv.render import band_fractions
+
+MAX_STEP_PX = 0.5  # largest image motion (px) between two consecutive path samples when n_samples is None
+MAX_SAMPLES = 20001
+
+
+@dataclass
+class LinearBlur:
+    """Straight trails of ``n`` stars: ``start`` and ``end`` (n, 2) px, ideal pinhole pixel coordinates, at the
+    opening and closing of the exposure; the mid-exposure position is their midpoint."""
+
+    start: np.ndarray
+    end: np.ndarray
+
+    @property
+    def length(self) -> np.ndarray:
+        """Trail length (n,) px (seed 000, Eqs. 13 and 18)."""
+        return np.linalg.norm(self.end - self.start, axis=1)
+
+    @property
+    def angle(self) -> np.ndarray:
+        """Trail direction (n,) rad from +u (columns) towards +v (rows), ``atan2(dv, du)`` (seed 000, Eqs. 14, 17)."""
+        d = self.end - self.start
+        return np.arctan2(d[:, 1], d[:, 0])
+
+    def paths(self, n_samples: int | None = None) -> np.ndarray:
+        """Each trail sampled at ``n_samples`` midpoint instants (n, m, 2) px; None: at most ``MAX_STEP_PX`` apart."""
+        m = _odd_samples(float(self.length.max(initial=0.0)), n_samples)
+        frac = (np.arange(m) + 0.5) / m
+        return self.start[:, None, :] + frac[None, :, None] * (self.end - self.start)[:, None, :]
+
+    def kernels(self, sigma_px: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The uniform line PSF of each trail (seed 000, Eqs. 15 and 21) convolved with the pixel-integrated Gaussian:
+        one :func:`path_kernel` result per star."""
+        return [path_kernel(p, sigma_px) for p in self.paths()]
+
+
+def cross_boresight_blur(xy_mid, rate_xy, exposure_s: float, camera: Camera) -> LinearBlur:
+    """Seed 000's linear kernel for rotation about the camera's X and Y axes (Eqs. 9-15).
+
+    ``xy_mid`` (n, 2) ideal pinhole px: the stars at mid-exposure; ``rate_xy`` (2,) rad/s: camera-frame rates about
+    X and Y (seed 000's Eq. 23 maps gyro body rates through the mounting); ``exposure_s`` (s).  Rotation about X
+    moves a star along v by ``fy [tan(alpha_y + w_x tau) - tan(alpha_y)]``, with ``tan(alpha_y) = (v - cy)/fy``;
+    rotation about Y moves it along u by ``fx [tan(alpha_x - w_y tau) - tan(alpha_x)]``; ``tau`` runs over
+    ``[-T/2, T/2]``.  To first order the length is Eq. 13, ``f (tan^2 alpha + 1) w T``, and the direction Eq. 14.
+    """
+    xy, rate, t = _linear_inputs(xy_mid, rate_xy, (2,), exposure_s)
+    ax = np.arctan((xy[:, 0] - camera.cx) / camera.fx)
+    ay = np.arctan((xy[:, 1] - camera.cy) / camera.fy)
+
+    def at(tau: float) -> np.ndarray:
+        return np.stack([camera.cx + camera.fx * np.tan(ax - rate[1] * tau),
+                         camera.cy + camera.fy * np.tan(ay + rate[0] * tau)], axis=1)
+
+    return LinearBlur(at(-0.5 * t), at(0.5 * t))
+
+
+def boresight_blur(xy_mid, rate_z: float, exposure_s: float, camera: Camera) -> LinearBlur:
+    """Seed 000's linear kernel for roll about the boresight (Eqs. 16-21).
+
+    A star at ``(u', v') = (u - cx, v - cy)`` (ideal pinhole px, mid-exposure) turns about the principal point by
+    ``-w_z tau`` (image axes x right, y down; ``rate_z`` rad/s about the camera's +Z); the trail is the chord between
+    ``tau = -T/2`` and ``+T/2``, of length ``2 r sin(|w_z| T / 2)`` (Eq. 18, ``|w_z| T r``, is its first order), in
+    direction ``(v', -u') sign(w_z)`` (Eq. 16).  Exact for pure roll of an undistorted pinhole with ``fx = fy``.
+    """
+    xy, rate, t = _linear_inputs(xy_mid, rate_z, (), exposure_s)
+    rel = xy - [camera.cx, camera.cy]
+
+    def at(tau: float) -> np.ndarray:
+        phi = float(rate) * tau
+        c, s = math.cos(phi), math.sin(phi)
+        return np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], axis=1) + [camera.cx,
+                                                                                                     camera.cy]
+
+    return LinearBlur(at(-0.5 * t), at(0.5 * t))
+
+
+def _linear_inputs(xy_mid, rate, rate_shape: tuple[int, ...], exposure_s: float):
+    xy = checks.finite("xy_mid", xy_mid)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ValueError(f"xy_mid must be an (n, 2) array of pixel positions, got shape {xy.shape}")
+    r = checks.finite("rate", rate, shape=rate_shape)
+    t = checks.in_range("exposure_s", exposure_s, 0.0, 10.0, unit="s")
+    return xy, r, t
+
+
+def gyro_rotation(gyro: GyroRecord, times: np.ndarray, t_ref: float) -> Rotation:
+    """Body rotations ``D(t)`` with ``A(t) = D(t) A(t_ref)``, from the gyro's average rates (one Rotation per time).
+
+    Sample ``i`` holds the average body rate over ``(t_i - dt, t_i]``; inside that interval the rate is taken as
+    constant, so the attitude advances by ``Rotation.from_rotvec(-w_i h)`` over a time ``h``.  Times before the
+    first interval take the first sample's rate, times after the last the last sample's (a frame carries samples
+    only up to the end of its exposure, so its last fraction of a sample interval is held).
+    """
+    t = checks.finite("gyro.t", gyro.t)
+    rate = checks.finite("gyro.rate", gyro.rate)
+    if t.ndim != 1 or len(t) == 0 or rate.shape != (len(t), 3):
+        raise ValueError(f"gyro must hold n >= 1 timestamps (n,) and rates (n, 3), got {t.shape} and {rate.shape}")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError("gyro.t must be strictly increasing")
+    dt = checks.positive("gyro.dt", gyro.dt, "s")
+    times = np.asarray(times, dtype=np.float64)
+    # Knots: start of the first interval, then every sample's end; G(knot_k) turns A(knot_0) into A(knot_k).
+    knots = np.concatenate([[t[0] - dt], t])
+    steps = Rotation.from_rotvec(-rate * np.diff(knots)[:, None])
+    cumulative = [Rotation.identity()]
+    for step in steps:
+        cumulative.append(step * cumulative[-1])
+    g_knots = Rotation.concatenate(cumulative)
+
+    def at(ts: np.ndarray) -> Rotation:
+        k = np.clip(np.searchsorted(knots, ts, side="right") - 1, 0, len(t) - 1)  # interval (knot k, knot k + 1]
+        return Rotation.from_rotvec(-rate[k] * (ts - knots[k])[:, None]) * g_knots[k]
+
+    return at(times) * at(np.array([float(t_ref)])).inv()
+
+
+def star_paths(camera: Camera, gyro: GyroRecord, t_start: float, t_end: float, xy_mid,
+               n_samples: int | None = None, line_time_s: float = 0.0) -> np.ndarray:
+    """Image paths (n, m, 2) distorted px of ``n`` stars over the exposure ``[t_start, t_end]`` (s).
+
+    ``xy_mid`` (n, 2): the stars' distorted pixel positions at mid-exposure ``(t_start + t_end) / 2``.  The gyro's
+    body rotations (:func:`gyro_rotation`) are carried into the camera frame by the mounting and applied to each
+    star's direction (``camera.unproject``), then projected (``camera.project``), so distortion and arcs are exact.
+    Samples are at ``m`` midpoint instants ``t_start + (j + 1/2) T / m`` (the renderer's rule); ``m`` is odd, so
+    sample ``m // 2`` is the mid-exposure position itself.  None: the smallest odd ``m`` with consecutive samples at
+    most ``MAX_STEP_PX`` apart.
+
+    Rolling shutter: with ``line_time_s > 0`` a star on row ``r`` (its ``xy_mid`` row) is exposed over
+    ``[t_start, t_end] + r * line_time_s`` and ``xy_mid`` is taken at the middle of that window (as the renderer
+    does).  ``StepInput`` does not carry the line time, so the deblurrers use the global-shutter window.
+    """
+    t0 = float(checks.finite("t_start", t_start, shape=()))
+    t1 = checks.in_range("t_end", t_end, t0, unit="s")
+    lt = checks.in_range("line_time_s", line_time_s, 0.0, 1e-3, unit="s")
+    xy = checks.finite("xy_mid", xy_mid)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ValueError(f"xy_mid must be an (n, 2) array of pixel positions, got shape {xy.shape}")
+    n = len(xy)
+    shift = lt * np.clip(xy[:, 1], 0.0, camera.height - 1) if lt > 0 else np.zeros(n)
+    t_mid = 0.5 * (t0 + t1)
+    v_mid = camera.unproject(xy) if n else np.zeros((0, 3))
+    mount = camera.mounting
+    if n_samples is None:
+        # Largest image speed: |w| f (1 + tan^2(alpha)) at the field corner (seed 000, Eq. 11).
+        w_max = float(np.abs(checks.finite("gyro.rate", gyro.rate)).sum(axis=1).max(initial=0.0))
+        px_per_rad = max(camera.fx, camera.fy) * (1.0 + math.tan(camera.half_diagonal) ** 2)
+        m = _odd_samples(w_max * (t1 - t0) * px_per_rad, None)
+    else:
+        m = _odd_samples(0.0, n_samples)
+    frac = (np.arange(m) + 0.5) / m
+    offsets = t0 + (t1 - t0) * frac - t_mid  # (m,) s from mid-exposure
+    if n == 0:
+        return np.zeros((0, m, 2))
+    groups = np.unique(shift)
+    out = np.empty((n, m, 2))
+    for s in groups:  # one group per exposure window (a single one with a global shutter)
+        sel = np.flatnonzero(shift == s)
+        rot = gyro_rotation(gyro, t_mid + s + offsets, t_mid + s)  # body: A(t) = D A(t_mid)
+        cam_rot = (mount * rot * mount.inv()).as_matrix()  # camera frame: c(t) = M D M^T c(t_mid)
+        v = np.einsum("kij,nj->nki", cam_rot, v_mid[sel])
+        p, _ = camera.project(v.reshape(-1, 3))
+        out[sel] = p.reshape(len(sel), m, 2)
+    return out
+
+
+def _odd_samples(length_px: float, n_samples: int | None) -> int:
+    if n_samples is not None:
+        m = checks.integer("n_samples", n_samples, 1, MAX_SAMPLES)
+    else:
+        m = max(1, math.ceil(length_px / MAX_STEP_PX))
+        m = min(m, MAX_SAMPLES)
+    return m if m % 2 else m + 1
+
+
+def path_kernel(path, sigma_px: float, xy_mid=None) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised blur kernel of a star that travelled along ``path`` (m, 2) px during the exposure.
+
+    Each sample is a pixel-integrated Gaussian of ``sigma_px`` (the renderer's PSF, :func:`band_fractions`) with
+    weight ``1/m``.  The path is shifted so that the mid-exposure position ``xy_mid`` (default: the middle sample,
+    ``path[m // 2]``, as :func:`star_paths` returns it) falls on the centre of the kernel pixel ``origin``, so
+    ``blurred = sharp (x) kernel`` with the kernel's ``origin`` at the sharp star's pixel.  The kernel is zero-padded
+    to odd sizes with ``origin`` at its centre ``(kw // 2, kh // 2)``: ready for 'same'-mode convolution.
+
+    Returns ``kernel`` (kh, kw) float64 summing to 1 and ``origin`` (2,) int as (x = column, y = row).
+    """
+    p = checks.finite("path", path)
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) == 0:
+        raise ValueError(f"path must be an (m, 2) array of pixel positions with m >= 1, got shape {p.shape}")
+    sigma = checks.in_range("sigma_px", sigma_px, 0.1, 20.0, unit="px")
+    mid = p[len(p) // 2] if xy_mid is None else checks.finite("xy_mid", xy_mid, shape=(2,))
+    rel = p - mid  # path relative to the mid-exposure position
+    band, frac = band_fractions(rel, sigma)  # (m, 2), (m, 2, n_band)
+    n_band = frac.shape[-1]
+    lo = band.min(axis=0)
+    hi = band.max(axis=0) + n_band - 1
+    half = np.maximum(-lo, hi)  # the kernel spans [-half, half] around the mid pixel (0, 0)
+    w, h = 2 * half + 1
+    m = len(p)
+    wx = np.zeros((m, w))
+    wy = np.zeros((m, h))
+    cols = np.arange(n_band)
+    rows_k = np.arange(m)[:, None]
+    wx[rows_k, band[:, 0, None] + half[0] + cols] = frac[:, 0]
+    wy[rows_k, band[:, 1, None] + half[1] + cols] = frac[:, 1]
+    kernel = np.einsum("ki,kj->ij", wy, wx)  # (not BLAS: small products are slow through threaded OpenBLAS)
+    kernel /= kernel.sum()
+    return kernel, half.astype(np.int64)

@@ -129,10 +129,14 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
         lis = runs["lost_in_space"].pipeline.build(sc).describe()
         assert lis == {**own, "identifier": "starenv.agents.identify:LostInSpaceIdentifier"}
     swept = [r for r in bench.runs if r.sweep_key == "motion.rate_dps"]
-    assert {r.scenario for r in swept} == {"paper_002"}
-    rates = sorted({r.sweep_value for r in swept})
+    assert {r.scenario for r in swept} == {"paper_000", "paper_002"}
+    rates = sorted({r.sweep_value for r in swept if r.scenario == "paper_002"})
     assert rates[0] == 0 and rates[-1] == 30
     assert all(math.hypot(*r.overrides["motion.rate_dps"]) == pytest.approx(r.sweep_value) for r in swept)
+    # every deblurrer of the seed papers runs, each beside a blurred baseline on the same scenario
+    deblurrers = {r.pipeline.build(scenario_mod.load(r.scenario)).describe()["deblurrer"] for r in bench.runs}
+    assert {"starenv.agents.neural.agent:IterationNetDeblurrer", "starenv.agents.curvature:CurvatureRLDeblurrer",
+            "starenv.agents.deblur:WienerDeblurrer", "starenv.agents.deblur:RoiDeblurrer"} < deblurrers
 
 
 USES_X = SMALL.replace('"lost_in_space"]', '"x"]')

@@ -33,6 +33,11 @@ PSF_RADIUS_SIGMA = 4.5  # half-width of the PSF footprint, in sigma
 MIN_ELECTRONS = 1e-9  # expected e- below which a pixel's signal is left out
 DETECTABLE_SNR = 5.0  # peak-pixel signal-to-noise at which a star counts as detectable in the scores
 BAND_TABLE_STEPS = 4096  # sub-pixel phases at which the PSF's pixel fractions are tabulated
+# A batch's patches are scattered instant by instant when the window area exceeds this many times n_band^2: numpy's
+# batched matmul costs ~0.2 ns per (instant, window pixel) and np.bincount ~10 ns per (instant, band pixel) on a 2-core
+# x86 VM (crossover measured between 26 and 76; benchmarks/render_speed.py times both paths).
+SCATTER_AREA_RATIO = 40
+SCATTER_CHUNK = 1 << 21  # (instant, band pixel) terms scattered per np.bincount call, bounding its memory (~40 MB)
 
 
 @dataclass
@@ -188,13 +193,14 @@ class StarRenderer:
         """Pixel-integrated Gaussian PSF summed over each star's instants; ``paths`` is (stars, instants, 2) px.
 
         At instant k the PSF covers a band of ``n_band`` columns and rows around the star; the fraction of light in
-        each (a difference of ``erf`` at the pixel edges) comes from :func:`band_fractions`.  Scattered into
-        (instants, width) matrices Wx and Wy over the star's window, the patch is one matrix product
-        ``Wy^T diag(w) Wx``.  Stars are batched by window size (rounded up to 8 px).  Returns the merged sparse
-        signal, each star's on-sensor electrons and its peak pixel's electrons.
+        each (a difference of ``erf`` at the pixel edges) comes from :func:`band_fractions`.  Stars are batched by
+        window size (rounded up to 8 px) and each batch's patches come from :func:`_patches_matmul` (cost ~ window
+        area per instant: short trails) or :func:`_patches_scatter` (cost ~ ``n_band^2`` per instant: long trails),
+        whichever is cheaper by ``SCATTER_AREA_RATIO``; both give the same sums to float64 rounding.  Returns the
+        merged sparse signal, each star's on-sensor electrons and its peak pixel's electrons.
         """
         cam = self.camera
-        n, k = paths.shape[:2]
+        n = len(paths)
         if n == 0:
             empty = StarSignal(np.zeros(0, np.int64), np.zeros(0, np.float32), (cam.height, cam.width))
             return empty, np.zeros(0), np.zeros(0)
@@ -208,18 +214,11 @@ class StarRenderer:
         electrons = np.zeros(n)
         peak = np.zeros(n)
         keys = size[:, 0] * 65536 + size[:, 1]
-        cols_band = np.arange(n_band)
         for key in np.unique(keys):
             group = np.flatnonzero(keys == key)
             w, h = int(size[group[0], 0]), int(size[group[0], 1])
-            m = len(group)
-            wx = np.zeros((m, k, w))
-            wy = np.zeros((m, k, h))
-            gi = np.arange(m)[:, None, None]
-            ki = np.arange(k)[None, :, None]
-            wx[gi, ki, offset[group, :, 0, None] + cols_band] = frac[group, :, 0]
-            wy[gi, ki, offset[group, :, 1, None] + cols_band] = frac[group, :, 1]
-            patches = np.matmul(wy.transpose(0, 2, 1), wx)  # (m, h, w) expected electrons
+            patch_fn = _patches_scatter if h * w > SCATTER_AREA_RATIO * n_band**2 else _patches_matmul
+            patches = patch_fn(offset[group], frac[group], h, w)  # (m, h, w) expected electrons
             rows = lo[group, 1, None, None] + np.arange(h)[None, :, None]  # (m, h, 1)
             cols = lo[group, 0, None, None] + np.arange(w)[None, None, :]  # (m, 1, w)
             on = (rows >= 0) & (rows < cam.height) & (cols >= 0) & (cols < cam.width)
@@ -246,6 +245,39 @@ class StarRenderer:
     def _owner(self) -> np.ndarray:
         """Scratch (height * width) int32 array for :meth:`_merge`; its contents are never read unwritten."""
         return np.empty(self.camera.height * self.camera.width, dtype=np.int32)
+
+
+def _patches_matmul(offset: np.ndarray, frac: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Patches (m, h, w) of m stars from their bands' window offsets ``offset`` (m, k, 2: column, row) and fractions
+    ``frac`` (m, k, 2, n_band; rows carry the weights): the bands scattered into (k, w) and (k, h) matrices Wx, Wy,
+    each patch is the product ``Wy^T Wx``."""
+    m, k, _, n_band = frac.shape
+    wx = np.zeros((m, k, w))
+    wy = np.zeros((m, k, h))
+    gi = np.arange(m)[:, None, None]
+    ki = np.arange(k)[None, :, None]
+    cols_band = np.arange(n_band)
+    wx[gi, ki, offset[:, :, 0, None] + cols_band] = frac[:, :, 0]
+    wy[gi, ki, offset[:, :, 1, None] + cols_band] = frac[:, :, 1]
+    return np.matmul(wy.transpose(0, 2, 1), wx)
+
+
+def _patches_scatter(offset: np.ndarray, frac: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Same patches as :func:`_patches_matmul`, summing each instant's ``n_band^2`` outer product
+    ``frac[1, j] * frac[0, i]`` into the star's window with ``np.bincount`` (float64, instant order), a few stars at a
+    time (``SCATTER_CHUNK``)."""
+    m, k, _, n_band = frac.shape
+    patches = np.empty((m, h * w))
+    band = np.arange(n_band)
+    per_call = max(1, SCATTER_CHUNK // (k * n_band**2))
+    for first in range(0, m, per_call):
+        part = slice(first, min(first + per_call, m))
+        n_part = part.stop - first
+        rows = (offset[part, :, 1, None] + band) * w + (np.arange(n_part) * (h * w))[:, None, None]  # (p, k, n_band)
+        flat = rows[..., :, None] + (offset[part, :, 0, None] + band)[..., None, :]  # (p, k, n_band, n_band)
+        values = frac[part, :, 1, :, None] * frac[part, :, 0, None, :]
+        patches[part] = np.bincount(flat.ravel(), values.ravel(), n_part * h * w).reshape(n_part, h * w)
+    return patches.reshape(m, h, w)
 
 
 @functools.lru_cache(maxsize=16)

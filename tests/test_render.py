@@ -5,12 +5,14 @@ import math
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from scipy.special import erf
 
+from starenv import render
 from starenv.frames import DEG, pointing, radec_to_unit
 from starenv.motion import ConstantRate, Trajectory
 from starenv.optics import Camera
 from starenv.photometry import Photometry
-from starenv.render import StarRenderer
+from starenv.render import PSF_RADIUS_SIGMA, StarRenderer
 from starenv.sky import StarCatalog
 
 # Seed 000's camera: f = 49 mm, 20 um pixels (2450 px focal length), here a 512 x 512 sensor; 10 ms exposure.
@@ -186,3 +188,73 @@ def test_mounting_rotates_what_a_head_sees():
         Trajectory(ConstantRate([0, 0, 0]), body), 0.0, 0.05
     )
     np.testing.assert_allclose(frame.truth.xy_mid[0], [head.cx, head.cy], atol=1e-9)
+
+
+def direct_trail_image(renderer, traj, exposure):
+    """Independent expected image of a one-star global-shutter frame: a loop over the renderer's midpoint instants,
+    each adding the star's electrons / n times the Gaussian integrated over every pixel of its n_band x n_band band,
+    from erf at the pixel edges (no tabulation, no matrix products, no scatter)."""
+    n = renderer._instants(traj, 0.0, exposure)
+    times = exposure * (np.arange(n) + 0.5) / n
+    v = CAM.inertial_to_camera(traj.attitude(times)).apply(renderer.catalog.unit[0].copy())
+    xy = np.stack([CAM.fx * v[:, 0] / v[:, 2] + CAM.cx, CAM.fy * v[:, 1] / v[:, 2] + CAM.cy], 1)  # pinhole
+    sigma = renderer.psf_sigma_px
+    radius = PSF_RADIUS_SIGMA * sigma
+    n_band = math.ceil(2 * radius) + 2
+    weight = renderer.electrons_per_s[0] * exposure / n
+    image = np.zeros((CAM.height, CAM.width))
+    for x, y in xy:
+        c0, r0 = math.floor(x - radius), math.floor(y - radius)
+        cx = np.arange(c0, c0 + n_band + 1) - 0.5  # pixel edges
+        ry = np.arange(r0, r0 + n_band + 1) - 0.5
+        fx = 0.5 * np.diff(erf((cx - x) / (math.sqrt(2) * sigma)))
+        fy = 0.5 * np.diff(erf((ry - y) / (math.sqrt(2) * sigma)))
+        image[r0 : r0 + n_band, c0 : c0 + n_band] += weight * np.outer(fy, fx)  # the test keeps the band on-sensor
+    return image, xy
+
+
+@pytest.mark.parametrize(
+    ("rate_dps", "path"),
+    [(3.0, "_patches_matmul"), (25.0, "_patches_matmul"), (300.0, "_patches_scatter"), (600.0, "_patches_scatter")],
+)
+def test_trail_image_matches_a_direct_per_instant_sum(monkeypatch, rate_dps, path):
+    """Short trails (~1 and ~12 px: window matrix products) and long ones (~150 and ~300 px: per-instant scatter)
+    against :func:`direct_trail_image`.  The renderer tabulates the pixel fractions (linear interpolation error < 1e-8
+    of the light per pixel and instant), so each pixel may differ by up to ~2e-8 of the star's electrons, on top of
+    the float32 rounding of the image (6e-8 relative)."""
+    renderer, a0 = one_star_renderer((CAM.cx - 120, CAM.cy - 90))
+    traj = Trajectory(ConstantRate(np.array([1.0, -0.6, 0.4]) * rate_dps * DEG), a0)
+    used = []
+    for name in ("_patches_matmul", "_patches_scatter"):
+        fn = getattr(render, name)
+        monkeypatch.setattr(render, name, lambda *a, _fn=fn, _name=name: used.append(_name) or _fn(*a))
+    frame = renderer.render(traj, 0.0, EXPOSURE)
+    assert used == [path]
+    expected, xy = direct_trail_image(renderer, traj, EXPOSURE)
+    assert frame.n_instants == len(xy)
+    total = renderer.electrons_per_s[0] * EXPOSURE
+    trail = np.linalg.norm(xy[-1] - xy[0])
+    assert trail < 15 if path == "_patches_matmul" else trail > 140  # the lengths the docstring gives
+    image = frame.signal.image()
+    np.testing.assert_allclose(image, expected, rtol=1e-6, atol=2e-8 * total)
+    # Per star the tabulated fractions' sum is smooth in the phase, so its interpolation error is ~1e-14 (measured);
+    # the peak pixel is float64, so only the ~1e-8 tabulation error is left.
+    assert frame.truth.electrons[0] == pytest.approx(expected.sum(), rel=1e-10)
+    assert frame.truth.peak_electrons[0] == pytest.approx(expected.max(), rel=1e-7)
+    # Only pixels above MIN_ELECTRONS are listed, and those are all of the direct sum's pixels above it.
+    np.testing.assert_array_equal(np.sort(frame.signal.index), np.flatnonzero(expected.ravel() > render.MIN_ELECTRONS))
+
+
+@pytest.mark.parametrize("chunk", [render.SCATTER_CHUNK, 5000])
+def test_scatter_and_matmul_patches_agree(monkeypatch, chunk):
+    """The two ways of summing a batch's instants give the same patches to float64 rounding, however many stars one
+    np.bincount call takes (a 5000-term chunk takes one star of 30 instants x 121 band pixels per call)."""
+    monkeypatch.setattr(render, "SCATTER_CHUNK", chunk)
+    rng = np.random.default_rng(3)
+    m, k, n_band, h, w = 4, 30, 11, 40, 48
+    offset = np.stack([rng.integers(0, w - n_band + 1, (m, k)), rng.integers(0, h - n_band + 1, (m, k))], -1)
+    frac = rng.uniform(0.0, 1.0, (m, k, 2, n_band)) * rng.uniform(1.0, 1e4, (m, 1, 1, 1))
+    a = render._patches_matmul(offset, frac, h, w)
+    b = render._patches_scatter(offset, frac, h, w)
+    np.testing.assert_allclose(b, a, rtol=1e-13, atol=0)
+    np.testing.assert_allclose(b.sum(axis=(1, 2)), (frac[:, :, 0].sum(-1) * frac[:, :, 1].sum(-1)).sum(1), rtol=1e-13)

@@ -163,6 +163,7 @@ BAD = {
     "bad seeds": (SMALL.replace("seeds = [0]", "seeds = [-1]"), "seeds: expected a non-empty list of integers >= 0"),
     "no runs": ("name = 'x'\n", "runs: expected a non-empty array of tables"),
     "bad recordings": ("recordings = 'yes'\n" + SMALL, "recordings: expected true, false or 'module:Callable'"),
+    "bad group recordings": (SMALL + "recordings = 'no'\n", "runs.0.recordings: expected true or false"),
     "preset name redefined": (SMALL + '[pipelines.scenario]\nsolver = "a:B"\n', "built-in preset name"),
 }
 
@@ -327,6 +328,15 @@ def test_observer_factory_records_each_run_to_its_own_file(tmp_path, monkeypatch
     lines = []
     run_bench(bench, out, jobs=1, progress=False, log=lines.append)
     assert lines[-1] == "ran 1 run(s), reused 3"
+    # a group with recordings = false runs unrecorded, and its missing recordings do not make it run again
+    quiet = parse_bench('recordings = "bench_observer_probe:StepCounter"\n' + SMALL + "recordings = false\n")
+    assert [r.digest for r in quiet.runs] == [r.digest for r in bench.runs]  # recording is not part of a run
+    out2 = tmp_path / "out2"
+    run_bench(quiet, out2, jobs=1, progress=False, log=_quiet)
+    assert not (out2 / "recordings").exists() or not any((out2 / "recordings").iterdir())
+    lines = []
+    run_bench(quiet, out2, jobs=1, progress=False, log=lines.append)
+    assert lines[-1] == "ran 0 run(s), reused 4"
 
 
 def test_mcap_recordings_hold_every_scored_step_of_their_run(tmp_path):

@@ -245,6 +245,12 @@ def write_report(bench, run_files: list[Path], out: Path) -> Path:
         "Attitude errors are over available steps.  Latencies are wall-clock on the machine that ran the step (the "
         "only values that differ between repeated runs).",
         "",
+    ]
+    recorded = sorted((out / "recordings").glob("*.mcap")) if bench.recorder else []
+    if recorded:
+        lines += [f"Recordings: [`recordings/`](recordings/), {len(recorded)} MCAP files (Foxglove, or "
+                  "`starenv view FILE.mcap` for a Rerun review).", ""]
+    lines += [
         tables,
         "## Plots",
         "",

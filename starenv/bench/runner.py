@@ -193,7 +193,7 @@ def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str 
     todo, reused = [], []
     for run in bench.runs:
         complete = is_complete(run_file(out, run), run)
-        if complete and bench.recorder is not None and not recording_file(out, run).is_file():
+        if complete and bench.recorder is not None and run.record and not recording_file(out, run).is_file():
             complete = False
         (reused if complete else todo).append(run)
     if reused:
@@ -204,7 +204,7 @@ def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str 
     done_steps = sum(r.steps for r in reused)
     bar = tqdm(total=len(bench.runs), initial=len(reused), unit="run", disable=not progress, file=sys.stderr,
                desc=bench.name, postfix={"steps": f"{done_steps}/{total_steps}"})
-    tasks = [(r, str(recording_file(out, r)) if bench.recorder else None, bench.recorder) for r in todo]
+    tasks = [(r, str(recording_file(out, r)) if bench.recorder and r.record else None, bench.recorder) for r in todo]
     try:
         for run, result in executor(tasks):
             write_run(run_file(out, run), run, result)

@@ -23,6 +23,7 @@ A bench file is TOML (bundled ones live in ``benches/`` at the repository root a
     # or  sweep = { key = "drops.probability", values = [0.0, 0.1, 0.3] }   (no axis: each value used as is)
     seeds = [3]                       # optional, replaces the default seeds
     steps = 50                        # optional, replaces the default steps
+    recordings = false                # optional: do not record this group's runs (default: as the bench says)
 
 With ``axis``, a swept value is a magnitude along the unit vector of ``axis`` (a rate of 10 deg/s about [1, 1, 1]
 overrides ``motion.rate_dps`` with ``10 / sqrt(3) * [1, 1, 1]``); ranges include ``stop``.
@@ -116,6 +117,7 @@ class RunSpec:
     pipeline: PipelineChoice
     seed: int
     steps: int
+    record: bool = True  # whether the bench's recorder (if any) records this run; not part of its identity
 
     def identity(self) -> dict:
         """What the run's results depend on (the scenario by the SHA-256 of its text)."""
@@ -366,6 +368,9 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
         sweep = None if sweep_tbl is None else _sweep(_Checker(sweep_tbl, g.where("sweep"), source))
         seeds = g.integers("seeds", default_seeds, 0)
         steps = g.integer("steps", default_steps, 1)
+        record = g.get("recordings", True)
+        if not isinstance(record, bool):
+            g.fail("recordings", "true or false (false: this group's runs are not recorded)", record)
         g.finish()
         for value in sweep.values if sweep else (None,):
             overrides = dict(fixed)
@@ -391,7 +396,7 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
                     runs.append(RunSpec(
                         sc_name, str(path), text_sc, overrides, sweep.key if sweep else None, value,
                         sweep.axis if sweep else None, pipelines[n], int(seed),
-                        int(steps if steps is not None else scenario.n_steps - 1),
+                        int(steps if steps is not None else scenario.n_steps - 1), record,
                     ))
     ids = {}
     for r in runs:

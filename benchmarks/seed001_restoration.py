@@ -63,7 +63,9 @@ def run(rates, frames: int, seed: int, min_electrons: float = 0.0, pointing=None
             overrides |= {"motion.initial_ra_deg": pointing[0], "motion.initial_dec_deg": pointing[1]}
         env = StarSensorEnv("paper_001", overrides=overrides)
         full_scale = env.scenario.heads[0].detector.max_dn
-        agents = {"Wiener (nsr 0.01)": WienerDeblurrer(), "curvature + RL, Eq. 25 stop": CurvatureRLDeblurrer()}
+        sigma = env.scenario.heads[0].psf_sigma_px  # the sensor's spot: the still stars are drawn with it
+        agents = {"Wiener (nsr 0.01)": WienerDeblurrer(psf_sigma_px=sigma),
+                  "curvature + RL, Eq. 25 stop": CurvatureRLDeblurrer(psf_sigma_px=sigma)}
         stats = {name: {"err": [], "fail": 0, "ms": [], "iters": []} for name in agents}
         obs, info = env.reset(seed=seed)
         for k in range(frames):

@@ -30,6 +30,10 @@ every tracked star, ``| |c_{k+1} - c_k| - |c_k - c_{k-1}| | <= eps(blur)``.  The
 ``eps``; we take ``eps(L) = max(eps_min_px, eps_per_px * L)`` with ``L`` the kernel's extent along that axis (px),
 and cap the iterations at ``max_iterations``.  The earliest possible stop is after iteration 3 (three iterates
 are needed).
+
+Output.  The RL estimate is the paper's restored image (:meth:`CurvatureRLDeblurrer.restore`); the deblurrer hands
+the detector the raw frame with each trail replaced by its still star (:func:`starenv.agents.deblur.resharpen`),
+since the bare estimate's amplified noise and one-pixel stars are not what a detector tuned to the sensor expects.
 """
 
 from __future__ import annotations

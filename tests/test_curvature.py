@@ -124,6 +124,8 @@ def test_bad_input_names_the_field():
         curvature_filter(np.zeros((5, 5)), threshold=-1.0)
     with pytest.raises(ValueError, match="eps_px"):
         CentroidStop(np.zeros((1, 4)), [-1.0, 0.0], 10)
+    with pytest.raises(ValueError, match="psf_sigma_px"):
+        CurvatureRLDeblurrer(psf_sigma_px=-1.0)
 
 
 def reference_stop(estimates, boxes, eps, floor):

@@ -6,11 +6,10 @@ pipeline (``Pipeline.for_scenario``) without and with ``IterationNetDeblurrer``,
 A step counts as solved when the pipeline's attitude came from that frame's stars (not from the gyro prediction)
 and is within the scenario's availability threshold (100 arcsec); a rate works when at least half its steps are
 solved.  Like the paper's tables, the report gives the last working and the first failing grid rate; an axis's scan
-stops after two failing rates in a row.  A third scan runs the restored frames with the detector's threshold raised
-(``--restored-threshold-sigma``, default 20; the scenario's detector uses 5): restored frames have a background
-that the detector's noise estimate misreads (see docs/seed000_restoration.md).
+stops after two failing rates in a row.  ``--restored-threshold-sigma S`` adds a scan of the restored frames with
+the detector's threshold at S sigma (the scenario's detector uses 5; default 0: no such scan).
 
-    python benchmarks/seed000_restoration.py [--axes x y z] [--steps 4] [--seed 0] [--restored-threshold-sigma 20]
+    python benchmarks/seed000_restoration.py [--axes x y z] [--steps 4] [--seed 0] [--restored-threshold-sigma S]
 """
 
 from __future__ import annotations
@@ -65,7 +64,8 @@ def solved_fraction(axis: str, rate: float, restored: bool, steps: int, seed: in
     vector = [0.0, 0.0, 0.0]
     vector[AXIS[axis]] = float(rate)
     env = StarSensorEnv("paper_000", overrides={"motion.rate_dps": vector})
-    agents = {"deblurrer": IterationNetDeblurrer()} if restored else None
+    sigma = env.scenario.heads[0].psf_sigma_px  # the sensor's spot: the still stars are drawn with it
+    agents = {"deblurrer": IterationNetDeblurrer(psf_sigma_px=sigma)} if restored else None
     options = {"detector": {"threshold_sigma": threshold_sigma}} if threshold_sigma is not None else None
     pipeline = Pipeline.for_scenario(env.scenario, agents=agents, options=options)
     watch = Sources()
@@ -100,7 +100,7 @@ def main() -> None:
     parser.add_argument("--axes", nargs="+", choices=list(GRIDS), default=list(GRIDS))
     parser.add_argument("--steps", type=int, default=4, help="scored steps per rate")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--restored-threshold-sigma", type=float, default=20.0,
+    parser.add_argument("--restored-threshold-sigma", type=float, default=0.0,
                         help="also scan restored frames with the detector at this threshold (0: skip)")
     args = parser.parse_args()
     variants = [("blurred", False, None), ("restored (EBPNN RL)", True, None)]

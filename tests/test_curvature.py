@@ -18,6 +18,7 @@ from starenv.agents.curvature import (
     plane_distances,
     window_centroids,
 )
+from starenv.agents.deblur import resharpen
 from starenv.optics import Camera
 from starenv.psf import path_kernel, star_paths
 from starenv.restoration import richardson_lucy
@@ -123,6 +124,8 @@ def test_bad_input_names_the_field():
         curvature_filter(np.zeros((5, 5)), threshold=-1.0)
     with pytest.raises(ValueError, match="eps_px"):
         CentroidStop(np.zeros((1, 4)), [-1.0, 0.0], 10)
+    with pytest.raises(ValueError, match="psf_sigma_px"):
+        CurvatureRLDeblurrer(psf_sigma_px=-1.0)
 
 
 def reference_stop(estimates, boxes, eps, floor):
@@ -203,11 +206,14 @@ def test_deblurrer_restores_a_smeared_star_to_its_mid_exposure_position():
     noisy = np.clip(np.round(img + rng.normal(0.0, 5.0, img.shape)), 0, 4095).astype(np.uint16)
     step = StepInput([noisy], np.ones(1, bool), t_mid, exposure, gyro, [camera])
     agent = CurvatureRLDeblurrer(max_iterations=60)
-    out = agent.deblur(noisy, 0, step)
+    estimate, kernel = agent.restore(noisy, 0, step)  # the seed's restored image, DN above the background
     info = agent.last_info
-    assert out.shape == noisy.shape and out.dtype == np.float64
+    assert estimate.shape == noisy.shape and estimate.dtype == np.float64
     assert info["stars_watched"] == 2 and info["converged"] and 3 <= info["iterations"] < 60
-    level = np.median(out)
     boxes = np.column_stack([np.round(stars) - 5, np.round(stars) + 6]).astype(int)
-    err = window_centroids(out - level, boxes, 0.2) - stars
+    err = window_centroids(estimate, boxes, 0.2) - stars
     assert np.all(np.abs(err) < 0.15)  # the blurred trail spans 16 px per axis
+    # deblur() is resharpen() of that estimate: the raw frame, each trail replaced by its still star.
+    out = agent.deblur(noisy, 0, step)
+    assert agent.last_info["iterations"] == info["iterations"]
+    np.testing.assert_allclose(out, resharpen(noisy.astype(np.float64), estimate, kernel, agent.psf_sigma_px))

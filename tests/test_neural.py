@@ -126,3 +126,5 @@ def test_deblurrer_runs_the_predicted_count_with_the_gyro_kernel():
     assert out.shape == image.shape and n == int(np.clip(round(agent.net.predict(agent.last_info["sumfc"])), 1, 300))
     with pytest.raises(ValueError, match="weights"):
         IterationNetDeblurrer(weights="no/such/file.npz")
+    with pytest.raises(ValueError, match="psf_sigma_px"):
+        IterationNetDeblurrer(psf_sigma_px=0.0)

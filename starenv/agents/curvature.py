@@ -30,6 +30,10 @@ every tracked star, ``| |c_{k+1} - c_k| - |c_k - c_{k-1}| | <= eps(blur)``.  The
 ``eps``; we take ``eps(L) = max(eps_min_px, eps_per_px * L)`` with ``L`` the kernel's extent along that axis (px),
 and cap the iterations at ``max_iterations``.  The earliest possible stop is after iteration 3 (three iterates
 are needed).
+
+Output.  The RL estimate is the paper's restored image (:meth:`CurvatureRLDeblurrer.restore`); the deblurrer hands
+the detector the raw frame with each trail replaced by its still star (:func:`starenv.agents.deblur.resharpen`),
+since the bare estimate's amplified noise and one-pixel stars are not what a detector tuned to the sensor expects.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ import cv2
 import numpy as np
 
 from starenv import checks
+from starenv.agents.deblur import resharpen
 from starenv.psf import path_kernel, star_paths
 from starenv.restoration import richardson_lucy
 
@@ -237,13 +242,18 @@ class CurvatureRLDeblurrer:
     tolerance ``max(eps_min_px, eps_per_px * blur length)`` per axis), ``kernel_sigma_px`` (Gaussian each kernel
     sample is drawn with: the restored stars keep the optics' own spot), ``detect_sigma`` (threshold, in noise
     sigmas of the kernel-matched image, of the stars whose centroids are watched), ``max_stars`` (the brightest
-    watched).  Returns the restored frame plus its background level (float64 DN) and sets ``last_info``.
+    watched), ``psf_sigma_px`` (the sensor's spot, px, that the still stars are drawn with).  :meth:`restore` gives
+    the seed's restored image (the RL estimate, from the denoised frame); :meth:`deblur` returns the raw frame with
+    each trail replaced by its still star (:func:`starenv.agents.deblur.resharpen` of that estimate): the output
+    keeps the raw frame's noise, which the detector models, instead of RL's amplified noise, so the detector's
+    precision holds (float64 DN).  Both set ``last_info``.
     """
 
     def __init__(self, threshold: float | None = None, threshold_sigma: float = 3.0, denoise_iterations: int = 3,
                  alpha: float = 1.0,
                  max_iterations: int = 50, eps_min_px: float = 0.002, eps_per_px: float = 0.0005,
-                 kernel_sigma_px: float = 0.5, detect_sigma: float = 5.0, max_stars: int = 20):
+                 kernel_sigma_px: float = 0.5, detect_sigma: float = 5.0, max_stars: int = 20,
+                 psf_sigma_px: float = 1.0):
         self.threshold = None if threshold is None else checks.non_negative("threshold", threshold)
         self.threshold_sigma = checks.non_negative("threshold_sigma", threshold_sigma)
         self.denoise_iterations = checks.integer("denoise_iterations", denoise_iterations, 0, 100)
@@ -254,6 +264,7 @@ class CurvatureRLDeblurrer:
         self.kernel_sigma_px = checks.in_range("kernel_sigma_px", kernel_sigma_px, 0.1, 20.0, unit="px")
         self.detect_sigma = checks.positive("detect_sigma", detect_sigma)
         self.max_stars = checks.integer("max_stars", max_stars, 1, 10000)
+        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
         self.last_info: dict = {}
 
     def watched_stars(self, image: np.ndarray, level: float, sigma: float, kernel: np.ndarray) -> np.ndarray:
@@ -273,9 +284,11 @@ class CurvatureRLDeblurrer:
         return np.stack([np.maximum(x - grow_x, 0), np.maximum(y - grow_y, 0),
                          np.minimum(x + ww + grow_x, w), np.minimum(y + hh + grow_y, h)], axis=1)
 
-    def deblur(self, image: np.ndarray, head: int, step) -> np.ndarray:
+    def restore(self, image: np.ndarray, head: int, step) -> tuple[np.ndarray, np.ndarray]:
+        """The seed's restoration: the Richardson-Lucy estimate (H, W) of the scene, DN above the denoised frame's
+        median (the paper's restored image), and the kernel it was restored with.  Sets ``last_info``."""
         t_start = time.perf_counter()
-        raw = np.asarray(image, dtype=np.float64)
+        raw = checks.finite("image", image).astype(np.float64)
         sigma = noise_sigma(raw)
         t = self.threshold_sigma * sigma if self.threshold is None else self.threshold
         denoised = curvature_filter(raw, t, self.denoise_iterations, self.alpha)
@@ -289,4 +302,9 @@ class CurvatureRLDeblurrer:
                                    callback=stop)
         self.last_info = {"iterations": stop.iterations, "converged": stop.converged, "stars_watched": len(boxes),
                           "denoise_threshold": t, "denoise_s": t_denoise, "total_s": time.perf_counter() - t_start}
-        return restored + level
+        return restored, kernel
+
+    def deblur(self, image: np.ndarray, head: int, step) -> np.ndarray:
+        """The raw frame with each trail replaced by its still star (class docstring), float64 DN."""
+        restored, kernel = self.restore(image, head, step)
+        return resharpen(np.asarray(image, dtype=np.float64), restored, kernel, self.psf_sigma_px)

@@ -9,6 +9,7 @@ import numpy as np
 
 from starenv import checks
 from starenv.agents.curvature import centre_kernel
+from starenv.agents.deblur import resharpen
 from starenv.agents.neural.ebpnn import EnsembleNet
 from starenv.agents.neural.features import initial_estimate, sumfc
 from starenv.restoration import richardson_lucy
@@ -23,16 +24,19 @@ class IterationNetDeblurrer:
 
     ``weights``: an ``.npz`` from ``python -m starenv.agents.neural.train`` (default: the shipped
     ``iteration_net.npz`` beside this module).  The frame's median is the background term; RL starts from the frame
-less that level, as in training.  Returns the restored
-    frame plus that level (float64 DN) and sets ``last_info`` (``iterations``, ``sumfc``, timings in s).
+    less that level, as in training.  Returns the frame with each trail replaced by its still star
+    (:func:`starenv.agents.deblur.resharpen` of the RL estimate: the frame keeps its own noise, which the detector
+    models, instead of RL's amplified noise), the still star drawn with the sensor's spot ``psf_sigma_px`` (px);
+    float64 DN.  Sets ``last_info`` (``iterations``, ``sumfc``, timings in s).
     """
 
-    def __init__(self, weights: str | Path | None = None, max_iterations: int = 300):
+    def __init__(self, weights: str | Path | None = None, max_iterations: int = 300, psf_sigma_px: float = 1.0):
         path = WEIGHTS if weights is None else Path(weights)
         if not path.is_file():
             raise ValueError(f"weights: no file {path}; make one with python -m starenv.agents.neural.train --out PATH")
         self.net = EnsembleNet.load(path)
         self.max_iterations = checks.integer("max_iterations", max_iterations, 1, 100000)
+        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
         self.last_info: dict = {}
 
     def iterations_for(self, kernel: np.ndarray) -> tuple[int, float]:
@@ -43,7 +47,7 @@ less that level, as in training.  Returns the restored
 
     def deblur(self, image: np.ndarray, head: int, step) -> np.ndarray:
         t0 = time.perf_counter()
-        data = checks.finite("image", image)
+        data = checks.finite("image", image).astype(np.float64)
         kernel, _ = centre_kernel(step, head, KERNEL_SIGMA_PX)
         n, feature = self.iterations_for(kernel)
         t_predict = time.perf_counter() - t0
@@ -52,4 +56,4 @@ less that level, as in training.  Returns the restored
                                    initial=initial_estimate(data, level))
         self.last_info = {"iterations": n, "sumfc": feature, "predict_s": t_predict,
                           "total_s": time.perf_counter() - t0}
-        return restored + level
+        return resharpen(data, restored, kernel, self.psf_sigma_px)

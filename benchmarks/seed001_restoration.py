@@ -29,7 +29,8 @@ from starenv.env import StarSensorEnv
 
 HALF_WINDOW = 5
 FAIL_PX = 2.0
-WIENER = "Wiener (nsr 0.01)"
+WIENER_NSR = 0.1
+WIENER = f"Wiener (nsr {WIENER_NSR:g})"
 RESTORED = "curvature + RL, Eq. 25 stop: restored image"
 RESHARPENED = "curvature + RL, Eq. 25 stop: deblur() output"
 
@@ -70,7 +71,8 @@ def run(rates, frames: int, seed: int, min_electrons: float = 0.0, pointing=None
         env = StarSensorEnv("paper_001", overrides=overrides)
         full_scale = env.scenario.heads[0].detector.max_dn
         sigma = env.scenario.heads[0].psf_sigma_px  # the sensor's spot: the still stars are drawn with it
-        wiener, curvature = WienerDeblurrer(psf_sigma_px=sigma), CurvatureRLDeblurrer(psf_sigma_px=sigma)
+        wiener = WienerDeblurrer(nsr=WIENER_NSR, psf_sigma_px=sigma)
+        curvature = CurvatureRLDeblurrer(psf_sigma_px=sigma)
 
         def seed_method(image, step, curvature=curvature, sigma=sigma):
             estimate, kernel = curvature.restore(image, 0, step)

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from starenv import scenario as scenario_mod
 from starenv.agents.pipeline import Pipeline
 from starenv.bench import BenchError, comparable, load_bench, parse_bench, read_run, run_bench, write_report
-from starenv.bench.report import aggregate
+from starenv.bench.report import aggregate, markdown_tables
 from starenv.bench.runner import RunResult, run_file, write_run
 from starenv.bench.spec import BENCH_DIR, Sweep, resolve_bench
 from starenv.cli import main
@@ -422,3 +422,19 @@ def test_report_links_tables_and_plots_that_exist(tmp_path):
     csv_lines = (tmp_path / "summary.csv").read_text().splitlines()
     assert len(csv_lines) == 1 + 4  # header + (2 rates x 2 pipelines)
     assert "attitude_error_arcsec_p95" in csv_lines[0] and "latency_detector_ms_median" in csv_lines[0]
+
+
+def test_restoration_table_lists_only_cases_with_a_deblurrer():
+    base = {"scenario": "paper_002", "sweep_key": None, "sweep_value": None, "runs": 1, "steps": 4}
+    rows = [
+        {**base, "pipeline": "tracking"},
+        {**base, "pipeline": "roi_rl", "restoration_stars_before_median": 12.0, "restoration_stars_before_p95": 14.0,
+         "restoration_stars_after_median": 15.0, "restoration_stars_after_p95": 16.5,
+         "restoration_psnr_gain_db_median": 4.25, "restoration_psnr_gain_db_p95": 4.5},
+    ]
+    text = markdown_tables(rows)
+    section = text[text.index("## Restoration"):text.index("## Latency")]
+    body = [line for line in section.splitlines() if line.startswith("| paper_002")]
+    assert len(body) == 1 and "| roi_rl |" in body[0]
+    assert "| 12 / 14 | 15 / 16.5 | 4.25 / 4.5 |" in body[0]
+    assert "## Restoration" not in markdown_tables(rows[:1])

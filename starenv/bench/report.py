@@ -94,6 +94,12 @@ ACCURACY = (
     ("centroid median / p95 (px)", ("centroid_error_px_mean_median", "centroid_error_px_mean_p95")),
     ("prediction median / p95 (px)", ("prediction_error_px_mean_median", "prediction_error_px_mean_p95")),
 )
+RESTORATION = (
+    ("centroid blurred (px)", "restoration_centroid_error_blurred_px"),
+    ("centroid restored (px)", "restoration_centroid_error_px"),
+    ("stars blurred", "restoration_stars_before"), ("stars restored", "restoration_stars_after"),
+    ("PSNR gain (dB)", "restoration_psnr_gain_db"), ("iterations", "restoration_iterations"),
+)
 
 
 def _case_cells(r: dict) -> list[str]:
@@ -102,7 +108,8 @@ def _case_cells(r: dict) -> list[str]:
 
 
 def markdown_tables(rows: list[dict]) -> str:
-    """The accuracy table and the latency table (median / p95 ms per agent role) as markdown."""
+    """The accuracy table, the restoration table (cases with a deblurrer) and the latency table (median / p95 ms per
+    agent role) as markdown."""
     head = ["scenario", "sweep", "pipeline", "runs", "steps"]
     lines = ["| " + " | ".join(head + [name for name, _ in ACCURACY]) + " |",
              "|" + "---|" * (len(head) + len(ACCURACY))]
@@ -120,8 +127,21 @@ def markdown_tables(rows: list[dict]) -> str:
             f"{_fmt(r.get(f'latency_{role}_ms_median'))} / {_fmt(r.get(f'latency_{role}_ms_p95'))}" for role in roles
         ]
         lat.append("| " + " | ".join(cells) + " |")
-    return ("## Accuracy\n\n" + "\n".join(lines) + "\n\n## Latency per agent role, median / p95 (ms)\n\n"
-            + "\n".join(lat) + "\n")
+    restoration = [r for r in rows if r.get("restoration_psnr_gain_db_median") is not None
+                   or r.get("restoration_stars_after_median") is not None]
+    rest = ""
+    if restoration:
+        names = [name for name, _ in RESTORATION]
+        table = ["| " + " | ".join(head + names) + " |", "|" + "---|" * (len(head) + len(names))]
+        for r in restoration:
+            cells = _case_cells(r) + [f"{_fmt(r.get(c + '_median'))} / {_fmt(r.get(c + '_p95'))}"
+                                      for _, c in RESTORATION]
+            table.append("| " + " | ".join(cells) + " |")
+        rest = ("\n## Restoration (pipelines with a deblurrer), median / p95\n\n"
+                "Centroid errors are against the true mid-exposure position; stars = detections matched to a true "
+                "star on the blurred and on the restored frame.\n\n" + "\n".join(table) + "\n")
+    return ("## Accuracy\n\n" + "\n".join(lines) + "\n" + rest
+            + "\n## Latency per agent role, median / p95 (ms)\n\n" + "\n".join(lat) + "\n")
 
 
 def _slug(*parts: str) -> str:

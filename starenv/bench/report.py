@@ -187,14 +187,8 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
             ax.set_xlabel(xlabel)
             ax.set_ylabel(ylabel)
             title = f"{scenario}: {ylabel.split(' (')[0]} vs {key.rsplit('.', 1)[-1]}"
-            ax.set_title(title)
             ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=8)
-            path = folder / f"{_slug(scenario, key, what)}.png"
-            fig.tight_layout()
-            fig.savefig(path, dpi=110)
-            plt.close(fig)
-            made.append((title, path))
+            made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, key, what)}.png")))
     by_scenario: dict[str, dict[str, dict[str, list[float]]]] = {}
     for f in run_files:
         header, steps, _ = read_run(f)
@@ -225,15 +219,21 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
         ax.set_xlabel("agent role")
         ax.set_ylabel("latency per step (ms)")
         title = f"{scenario}: agent latency per role (wall clock, all steps)"
-        ax.set_title(title)
         ax.grid(True, axis="y", which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-        path = folder / f"{_slug(scenario, 'latency')}.png"
-        fig.tight_layout()
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        made.append((title, path))
+        made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, 'latency')}.png")))
     return made
+
+
+def _save(fig, ax, title: str, path: Path) -> Path:
+    """Title, legend and PNG of one figure, then close it."""
+    import matplotlib.pyplot as plt
+
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def _axis_of(run_files: list[Path], scenario: str, key: str):

@@ -213,7 +213,8 @@ class Camera:
     """One camera head: resolution, pinhole intrinsics (px), distortion and the body -> camera mounting rotation.
 
     ``pixel_pitch_m`` and ``focal_length_m`` are the physical values (``fx = focal_length_m / pixel_pitch_m``);
-    ``aperture_m`` is the entrance-pupil diameter used for photometry.
+    ``aperture_m`` is the entrance-pupil diameter used for photometry; ``psf_sigma_px`` the Gaussian sigma of a still
+    star's spot (px), part of a sensor's calibration (detectors and deblurrers default to it).
     """
 
     width: int
@@ -226,6 +227,7 @@ class Camera:
     aperture_m: float
     distortion: Distortion = NoDistortion()
     mounting: Rotation = field(default_factory=Rotation.identity)
+    psf_sigma_px: float = 1.0
 
     def __post_init__(self):
         checks.integer("width", self.width, 8, 16384)
@@ -236,6 +238,7 @@ class Camera:
         checks.in_range("cy", self.cy, -0.5, self.height - 0.5, unit="px")
         checks.in_range("pixel_pitch_m", self.pixel_pitch_m, 0.0, 1e-3, low_open=True, unit="m")
         checks.in_range("aperture_m", self.aperture_m, 0.0, 1.0, low_open=True, unit="m")
+        checks.in_range("psf_sigma_px", self.psf_sigma_px, 0.1, 20.0, unit="px")
         if not isinstance(self.mounting, Rotation) or not self.mounting.single:
             raise ValueError("mounting must be a single scipy Rotation (body -> camera)")
         checks.finite("mounting", self.mounting.as_quat(), shape=(4,))

@@ -240,10 +240,14 @@ class HeadSpec:
     name: str
     camera: Camera
     calibrated: Camera
-    psf_sigma_px: float
     photometry: Photometry
     detector: DetectorSpec
     stray_light: StrayLight
+
+    @property
+    def psf_sigma_px(self) -> float:
+        """The true spot's Gaussian sigma (px); the calibrated camera carries the same value."""
+        return self.camera.psf_sigma_px
 
 
 def _head(tbl: _Table, index: int) -> HeadSpec:
@@ -262,14 +266,14 @@ def _head(tbl: _Table, index: int) -> HeadSpec:
     pp = {} if principal is None else {"cx": principal[0], "cy": principal[1]}
     camera = tbl.build(
         "heads", Camera.from_focal_length, focal_mm * 1e-3, pitch_um * 1e-6, width, height, f_number,
-        distortion=distortion, mounting=mounting, **pp,
+        distortion=distortion, mounting=mounting, psf_sigma_px=psf_sigma, **pp,
     )
     detector = _dataclass_from_table(tbl.table("detector"), DetectorSpec)
     stray = _dataclass_from_table(tbl.table("stray_light"), StrayLight)
     calibrated = _calibration(tbl.table("calibration"), camera)
     tbl.finish()
     photometry = tbl.build("heads", Photometry, camera.aperture_m, transmission, qe)
-    return HeadSpec(name, camera, calibrated, psf_sigma, photometry, detector, stray)
+    return HeadSpec(name, camera, calibrated, photometry, detector, stray)
 
 
 def _calibration(tbl: _Table | None, camera: Camera) -> Camera:

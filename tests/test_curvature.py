@@ -216,4 +216,4 @@ def test_deblurrer_restores_a_smeared_star_to_its_mid_exposure_position():
     # deblur() is resharpen() of that estimate: the raw frame, each trail replaced by its still star.
     out = agent.deblur(noisy, 0, step)
     assert agent.last_info["iterations"] == info["iterations"]
-    np.testing.assert_allclose(out, resharpen(noisy.astype(np.float64), estimate, kernel, agent.psf_sigma_px))
+    np.testing.assert_allclose(out, resharpen(noisy.astype(np.float64), estimate, kernel, camera.psf_sigma_px))

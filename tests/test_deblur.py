@@ -88,6 +88,16 @@ def test_agents_restore_light_to_the_mid_exposure_position(paper000):
             assert win.max() - np.median(out) > gains[type(agent)] * smeared_peak
 
 
+def test_deblurrers_draw_still_stars_with_the_calibrated_cameras_spot(paper000):
+    base, step, _, image = paper000
+    sigma = base.cameras[0].psf_sigma_px
+    assert sigma == base.scenario.heads[0].psf_sigma_px == 0.8  # paper_000's calibrated spot, not the 1.0 default
+    for agent_class in (RoiDeblurrer, WienerDeblurrer):
+        default = agent_class().deblur(image, 0, step)
+        np.testing.assert_array_equal(default, agent_class(psf_sigma_px=sigma).deblur(image, 0, step))
+        assert np.abs(default - agent_class(psf_sigma_px=1.0).deblur(image, 0, step)).max() > 1.0  # DN
+
+
 def test_roi_deblurrer_leaves_the_rest_of_the_frame_untouched(paper000):
     base, step, _, image = paper000
     agent = RoiDeblurrer(10, base.scenario.heads[0].psf_sigma_px)

@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 
 from starenv import checks
-from starenv.agents.deblur import resharpen
+from starenv.agents.deblur import resharpen, sigma_for, spot_sigma
 from starenv.psf import path_kernel, star_paths
 from starenv.restoration import richardson_lucy
 
@@ -242,10 +242,11 @@ class CurvatureRLDeblurrer:
     tolerance ``max(eps_min_px, eps_per_px * blur length)`` per axis), ``kernel_sigma_px`` (Gaussian each kernel
     sample is drawn with: the restored stars keep the optics' own spot), ``detect_sigma`` (threshold, in noise
     sigmas of the kernel-matched image, of the stars whose centroids are watched), ``max_stars`` (the brightest
-    watched), ``psf_sigma_px`` (the sensor's spot, px, that the still stars are drawn with).  :meth:`restore` gives
-    the seed's restored image (the RL estimate, from the denoised frame); :meth:`deblur` returns the raw frame with
-    each trail replaced by its still star (:func:`starenv.agents.deblur.resharpen` of that estimate): the output
-    keeps the raw frame's noise, which the detector models, instead of RL's amplified noise, so the detector's
+    watched), ``psf_sigma_px`` (the sensor's spot, px, that the still stars are drawn with; None: the calibrated
+    camera's).  :meth:`restore` gives the seed's restored image (the RL estimate, from the denoised frame);
+    :meth:`deblur` returns the raw frame with each trail replaced by its still star
+    (:func:`starenv.agents.deblur.resharpen` of that estimate): the output keeps the raw frame's noise, which the
+    detector models, instead of RL's amplified noise, so the detector's
     precision holds (float64 DN).  Both set ``last_info``.
     """
 
@@ -253,7 +254,7 @@ class CurvatureRLDeblurrer:
                  alpha: float = 1.0,
                  max_iterations: int = 50, eps_min_px: float = 0.002, eps_per_px: float = 0.0005,
                  kernel_sigma_px: float = 0.5, detect_sigma: float = 5.0, max_stars: int = 20,
-                 psf_sigma_px: float = 1.0):
+                 psf_sigma_px: float | None = None):
         self.threshold = None if threshold is None else checks.non_negative("threshold", threshold)
         self.threshold_sigma = checks.non_negative("threshold_sigma", threshold_sigma)
         self.denoise_iterations = checks.integer("denoise_iterations", denoise_iterations, 0, 100)
@@ -264,7 +265,7 @@ class CurvatureRLDeblurrer:
         self.kernel_sigma_px = checks.in_range("kernel_sigma_px", kernel_sigma_px, 0.1, 20.0, unit="px")
         self.detect_sigma = checks.positive("detect_sigma", detect_sigma)
         self.max_stars = checks.integer("max_stars", max_stars, 1, 10000)
-        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
+        self.psf_sigma_px = spot_sigma(psf_sigma_px)
         self.last_info: dict = {}
 
     def watched_stars(self, image: np.ndarray, level: float, sigma: float, kernel: np.ndarray) -> np.ndarray:
@@ -307,4 +308,5 @@ class CurvatureRLDeblurrer:
     def deblur(self, image: np.ndarray, head: int, step) -> np.ndarray:
         """The raw frame with each trail replaced by its still star (class docstring), float64 DN."""
         restored, kernel = self.restore(image, head, step)
-        return resharpen(np.asarray(image, dtype=np.float64), restored, kernel, self.psf_sigma_px)
+        sigma = sigma_for(self.psf_sigma_px, step.cameras[head])
+        return resharpen(np.asarray(image, dtype=np.float64), restored, kernel, sigma)

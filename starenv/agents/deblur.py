@@ -51,6 +51,16 @@ def _checked_image(image, camera: Camera) -> np.ndarray:
     return checks.finite("image", image)
 
 
+def spot_sigma(option: float | None) -> float | None:
+    """A deblurrer's ``psf_sigma_px`` option checked: None (the calibrated camera's ``psf_sigma_px``) or px."""
+    return None if option is None else checks.in_range("psf_sigma_px", option, 0.1, 20.0, unit="px")
+
+
+def sigma_for(option: float | None, camera: Camera) -> float:
+    """The spot sigma (px) a deblurrer draws still stars with: its option, else the calibrated camera's."""
+    return camera.psf_sigma_px if option is None else option
+
+
 def _window(step: StepInput) -> tuple[float, float]:
     half = 0.5 * float(step.exposure_s)
     return step.time_s - half, step.time_s + half
@@ -83,34 +93,36 @@ class RichardsonLucyDeblurrer:
     """Full-frame Richardson-Lucy with one kernel (the frame centre's), ``iterations`` fixed; the robust background
     level is the model's background term."""
 
-    def __init__(self, iterations: int = 20, psf_sigma_px: float = 1.0):
+    def __init__(self, iterations: int = 20, psf_sigma_px: float | None = None):
         self.iterations = checks.integer("iterations", iterations, 0, 10000)
-        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
+        self.psf_sigma_px = spot_sigma(psf_sigma_px)
         self.last_info: dict = {}
 
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         data = _checked_image(image, step.cameras[head])
+        sigma = sigma_for(self.psf_sigma_px, step.cameras[head])
         level, _ = robust_background(data)
-        kernel, _ = frame_kernel(step, head, self.psf_sigma_px)
+        kernel, _ = frame_kernel(step, head, sigma)
         restored = richardson_lucy(np.maximum(data, 0.0), kernel, self.iterations, background=level)
         self.last_info = {"iterations": self.iterations, "kernel_px": int(max(kernel.shape))}
-        return resharpen(data, restored, kernel, self.psf_sigma_px)
+        return resharpen(data, restored, kernel, sigma)
 
 
 class WienerDeblurrer:
     """Full-frame Wiener filter with one kernel (the frame centre's) and a constant noise-to-signal ratio ``nsr``."""
 
-    def __init__(self, nsr: float = 0.1, psf_sigma_px: float = 1.0):
+    def __init__(self, nsr: float = 0.1, psf_sigma_px: float | None = None):
         self.nsr = checks.in_range("nsr", nsr, 0.0, 1e6, low_open=True)
-        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
+        self.psf_sigma_px = spot_sigma(psf_sigma_px)
         self.last_info: dict = {}
 
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         data = _checked_image(image, step.cameras[head])
+        sigma = sigma_for(self.psf_sigma_px, step.cameras[head])
         level, _ = robust_background(data)
-        kernel, _ = frame_kernel(step, head, self.psf_sigma_px)
+        kernel, _ = frame_kernel(step, head, sigma)
         self.last_info = {"iterations": 0, "kernel_px": int(max(kernel.shape))}
-        return resharpen(data, wiener(data - level, kernel, self.nsr), kernel, self.psf_sigma_px)
+        return resharpen(data, wiener(data - level, kernel, self.nsr), kernel, sigma)
 
 
 class RoiDeblurrer:
@@ -128,17 +140,14 @@ class RoiDeblurrer:
     the patch-edge artefacts) are not.  Where boxes overlap, the later candidate's restoration wins.
     """
 
-    def __init__(self, iterations: int = 20, psf_sigma_px: float = 1.0, threshold_sigma: float = 5.0,
+    def __init__(self, iterations: int = 20, psf_sigma_px: float | None = None, threshold_sigma: float = 5.0,
                  min_area_px: int = 4, margin_px: int = 3, max_patch_px: int = 256):
         self.iterations = checks.integer("iterations", iterations, 0, 10000)
-        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
+        self.psf_sigma_px = spot_sigma(psf_sigma_px)
         self.threshold_sigma = checks.in_range("threshold_sigma", threshold_sigma, 0.0, 100.0, low_open=True)
         self.min_area_px = checks.integer("min_area_px", min_area_px, 1, 10**6)
         self.margin_px = checks.integer("margin_px", margin_px, 0, 100)
         self.max_patch_px = checks.integer("max_patch_px", max_patch_px, 8, 4096)
-        radius = int(np.ceil(4.0 * self.psf_sigma_px))
-        g = cv2.getGaussianKernel(2 * radius + 1, self.psf_sigma_px, cv2.CV_64F)
-        self._gaussian = (g @ g.T).astype(np.float32)  # the kernel cv2.GaussianBlur applies in resharpen()
         self.last_info: dict = {}
 
     def candidates(self, data: np.ndarray, level: float, noise: float, streak: np.ndarray) -> np.ndarray:
@@ -155,8 +164,9 @@ class RoiDeblurrer:
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         cam = step.cameras[head]
         data = _checked_image(image, cam)
+        sigma = sigma_for(self.psf_sigma_px, cam)
         level, noise = robust_background(data)
-        streak, _ = frame_kernel(step, head, self.psf_sigma_px)
+        streak, _ = frame_kernel(step, head, sigma)
         centres = self.candidates(data, level, noise, streak)
         out = data.copy()
         self.last_info = {"iterations": self.iterations, "candidates": int(len(centres)), "skipped": 0,
@@ -164,7 +174,7 @@ class RoiDeblurrer:
         if len(centres) == 0:
             return out
         t0, t1 = _window(step)
-        kernels = [path_kernel(p, self.psf_sigma_px)[0] for p in star_paths(cam, step.gyro, t0, t1, centres)]
+        kernels = [path_kernel(p, sigma)[0] for p in star_paths(cam, step.gyro, t0, t1, centres)]
         half = np.array([[k.shape[1] // 2, k.shape[0] // 2] for k in kernels])  # (k, 2) x, y
         mid = np.rint(centres).astype(np.int64)
         lo = np.maximum(mid - half, 0)
@@ -176,12 +186,12 @@ class RoiDeblurrer:
         keys = size[idx, 0] * 65536 + size[idx, 1]
         for key in np.unique(keys):
             group = idx[keys == key]
-            self._restore(out, data, level, group, [kernels[g] for g in group], lo, hi, size[group[0]])
+            self._restore(out, data, level, group, [kernels[g] for g in group], lo, hi, size[group[0]], sigma)
         self.last_info.update(skipped=int((~fits).sum()), batches=int(len(np.unique(keys))),
                               patch_px=int(size[idx].max(initial=0)))
         return out
 
-    def _restore(self, out, data, level, idx, kernels, lo, hi, patch) -> None:
+    def _restore(self, out, data, level, idx, kernels, lo, hi, patch, sigma) -> None:
         """Restore candidates ``idx`` on patches of ``patch`` = (width, height) px in one batch; paste their boxes
         ``lo``..``hi`` (inclusive x, y) into ``out``."""
         pw, ph = int(patch[0]), int(patch[1])
@@ -204,7 +214,9 @@ class RoiDeblurrer:
                                          background=level, circular=True)
         # resharpen() on the batch, with the same periodic convolutions (the margins that wrap are not pasted).
         model = convolve_batch(estimate, psfs / psfs.sum(axis=(1, 2), keepdims=True), circular=True)
-        still = convolve_batch(estimate, self._gaussian[None], circular=True)
+        radius = int(np.ceil(4.0 * sigma))
+        g = cv2.getGaussianKernel(2 * radius + 1, sigma, cv2.CV_64F)  # the kernel cv2.GaussianBlur applies
+        still = convolve_batch(estimate, (g @ g.T).astype(np.float32)[None], circular=True)
         restored = patches - model + still
         for i, j in enumerate(idx):
             (x0, y0), (x1, y1) = lo[j], hi[j]

@@ -9,7 +9,7 @@ import numpy as np
 
 from starenv import checks
 from starenv.agents.curvature import centre_kernel
-from starenv.agents.deblur import resharpen
+from starenv.agents.deblur import resharpen, sigma_for, spot_sigma
 from starenv.agents.neural.ebpnn import EnsembleNet
 from starenv.agents.neural.features import initial_estimate, sumfc
 from starenv.restoration import richardson_lucy
@@ -26,17 +26,17 @@ class IterationNetDeblurrer:
     ``iteration_net.npz`` beside this module).  The frame's median is the background term; RL starts from the frame
     less that level, as in training.  Returns the frame with each trail replaced by its still star
     (:func:`starenv.agents.deblur.resharpen` of the RL estimate: the frame keeps its own noise, which the detector
-    models, instead of RL's amplified noise), the still star drawn with the sensor's spot ``psf_sigma_px`` (px);
-    float64 DN.  Sets ``last_info`` (``iterations``, ``sumfc``, timings in s).
+    models, instead of RL's amplified noise), the still star drawn with the sensor's spot ``psf_sigma_px`` (px; None:
+    the calibrated camera's); float64 DN.  Sets ``last_info`` (``iterations``, ``sumfc``, timings in s).
     """
 
-    def __init__(self, weights: str | Path | None = None, max_iterations: int = 300, psf_sigma_px: float = 1.0):
+    def __init__(self, weights: str | Path | None = None, max_iterations: int = 300, psf_sigma_px: float | None = None):
         path = WEIGHTS if weights is None else Path(weights)
         if not path.is_file():
             raise ValueError(f"weights: no file {path}; make one with python -m starenv.agents.neural.train --out PATH")
         self.net = EnsembleNet.load(path)
         self.max_iterations = checks.integer("max_iterations", max_iterations, 1, 100000)
-        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
+        self.psf_sigma_px = spot_sigma(psf_sigma_px)
         self.last_info: dict = {}
 
     def iterations_for(self, kernel: np.ndarray) -> tuple[int, float]:
@@ -56,4 +56,5 @@ class IterationNetDeblurrer:
                                    initial=initial_estimate(data, level))
         self.last_info = {"iterations": n, "sumfc": feature, "predict_s": t_predict,
                           "total_s": time.perf_counter() - t0}
-        return resharpen(data, restored, kernel, self.psf_sigma_px)
+        sigma = sigma_for(self.psf_sigma_px, step.cameras[head])
+        return resharpen(data, restored, kernel, sigma)

@@ -61,11 +61,11 @@ def main() -> None:
     render = median_time(lambda: renderer.render(traj, 0.0, exposure), args.repeats)
     readout = median_time(lambda: detector.read_out(frame.signal, exposure, rng), args.repeats)
 
-    def full():
-        f = renderer.render(traj, 0.0, exposure)
-        detector.read_out(f.signal, exposure, rng)
+    def frame_time(rend, trajectory, exp) -> float:
+        """Median time (s) of one frame: render, then the full read-out noise chain."""
+        return median_time(lambda: detector.read_out(rend.render(trajectory, 0.0, exp).signal, exp, rng), args.repeats)
 
-    total = median_time(full, args.repeats)
+    total = frame_time(renderer, traj, exposure)
     print(f"frame: {cam.width}x{cam.height}, {len(frame.truth)} stars, median trail {np.median(trail):.1f} px, "
           f"{frame.n_instants} instants per star")
     print(f"RNG floor (float32 normal per pixel): {floor * 1e3:8.2f} ms")
@@ -81,11 +81,7 @@ def main() -> None:
     long_frame = long_renderer.render(long_traj, 0.0, long_exposure)
     long_trail = np.linalg.norm(long_frame.truth.xy_end - long_frame.truth.xy_start, axis=1)
 
-    def long_full():
-        f = long_renderer.render(long_traj, 0.0, long_exposure)
-        detector.read_out(f.signal, long_exposure, rng)
-
-    long_total = median_time(long_full, args.repeats)
+    long_total = frame_time(long_renderer, long_traj, long_exposure)
     print(f"long trails: {len(long_frame.truth)} stars, median trail {np.median(long_trail):.1f} px, "
           f"{long_frame.n_instants} instants per star")
     print(f"render + read-out:                    {long_total * 1e3:8.2f} ms  = {long_total / floor:.2f} x floor")

@@ -45,8 +45,8 @@ import cv2
 import numpy as np
 
 from starenv import checks
-from starenv.agents.deblur import resharpen, sigma_for, spot_sigma
-from starenv.psf import path_kernel, star_paths
+from starenv.agents.deblur import exposure_path, resharpen, sigma_for, spot_sigma
+from starenv.psf import path_kernel
 from starenv.restoration import richardson_lucy
 
 # Eq. 17: (dy, dx) of the three points of each tangent plane around (y, x).
@@ -179,8 +179,7 @@ def centre_kernel(step, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndar
     """The motion kernel (normalised, centred) of a star at head ``head``'s principal point over the exposure
     ``time_s -/+ exposure_s / 2``, from the step's gyro samples (``starenv.psf``), and its extent (2,) px (x, y)."""
     camera = step.cameras[head]
-    t0 = step.time_s - 0.5 * step.exposure_s
-    path = star_paths(camera, step.gyro, t0, t0 + step.exposure_s, [[camera.cx, camera.cy]])[0]
+    path = exposure_path(step, head, (camera.cx, camera.cy))
     kernel, _ = path_kernel(path, sigma_px)
     return kernel, np.ptp(path, axis=0)
 

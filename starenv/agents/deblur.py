@@ -81,48 +81,64 @@ def resharpen(data: np.ndarray, estimate: np.ndarray, kernel: np.ndarray, psf_si
     return data - model + still.reshape(estimate.shape)
 
 
-def frame_kernel(step: StepInput, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """The kernel of a star at the centre of head ``head``'s frame (:func:`starenv.psf.path_kernel` result)."""
+def exposure_path(step: StepInput, head: int, xy_mid=None) -> np.ndarray:
+    """The path (m, 2) px over the exposure of a star at ``xy_mid`` (px) at mid-exposure on head ``head``, from the
+    step's gyro samples; None: the centre of the frame."""
     cam = step.cameras[head]
     t0, t1 = _window(step)
-    centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
-    return path_kernel(star_paths(cam, step.gyro, t0, t1, centre)[0], sigma_px)
+    xy = [(cam.width - 1) / 2.0, (cam.height - 1) / 2.0] if xy_mid is None else xy_mid
+    return star_paths(cam, step.gyro, t0, t1, np.reshape(xy, (1, 2)))[0]
 
 
-class RichardsonLucyDeblurrer:
-    """Full-frame Richardson-Lucy with one kernel (the frame centre's), ``iterations`` fixed; the robust background
-    level is the model's background term."""
+def frame_kernel(step: StepInput, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel of a star at the centre of head ``head``'s frame (:func:`starenv.psf.path_kernel` result)."""
+    return path_kernel(exposure_path(step, head), sigma_px)
 
-    def __init__(self, iterations: int = 20, psf_sigma_px: float | None = None):
-        self.iterations = checks.integer("iterations", iterations, 0, 10000)
+
+class _FrameKernelDeblurrer:
+    """Full-frame restoration with one kernel (the frame centre's): subclasses give :meth:`estimate` of the scene
+    from the frame, its robust background level and the kernel; :meth:`deblur` resharpens it."""
+
+    iterations = 0
+
+    def __init__(self, psf_sigma_px: float | None):
         self.psf_sigma_px = spot_sigma(psf_sigma_px)
         self.last_info: dict = {}
+
+    def estimate(self, data: np.ndarray, level: float, kernel: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
 
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         data = _checked_image(image, step.cameras[head])
         sigma = sigma_for(self.psf_sigma_px, step.cameras[head])
         level, _ = robust_background(data)
         kernel, _ = frame_kernel(step, head, sigma)
-        restored = richardson_lucy(np.maximum(data, 0.0), kernel, self.iterations, background=level)
+        restored = self.estimate(data, level, kernel)
         self.last_info = {"iterations": self.iterations, "kernel_px": int(max(kernel.shape))}
         return resharpen(data, restored, kernel, sigma)
 
 
-class WienerDeblurrer:
+class RichardsonLucyDeblurrer(_FrameKernelDeblurrer):
+    """Full-frame Richardson-Lucy with one kernel (the frame centre's), ``iterations`` fixed; the robust background
+    level is the model's background term."""
+
+    def __init__(self, iterations: int = 20, psf_sigma_px: float | None = None):
+        super().__init__(psf_sigma_px)
+        self.iterations = checks.integer("iterations", iterations, 0, 10000)
+
+    def estimate(self, data: np.ndarray, level: float, kernel: np.ndarray) -> np.ndarray:
+        return richardson_lucy(np.maximum(data, 0.0), kernel, self.iterations, background=level)
+
+
+class WienerDeblurrer(_FrameKernelDeblurrer):
     """Full-frame Wiener filter with one kernel (the frame centre's) and a constant noise-to-signal ratio ``nsr``."""
 
     def __init__(self, nsr: float = 0.1, psf_sigma_px: float | None = None):
+        super().__init__(psf_sigma_px)
         self.nsr = checks.in_range("nsr", nsr, 0.0, 1e6, low_open=True)
-        self.psf_sigma_px = spot_sigma(psf_sigma_px)
-        self.last_info: dict = {}
 
-    def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
-        data = _checked_image(image, step.cameras[head])
-        sigma = sigma_for(self.psf_sigma_px, step.cameras[head])
-        level, _ = robust_background(data)
-        kernel, _ = frame_kernel(step, head, sigma)
-        self.last_info = {"iterations": 0, "kernel_px": int(max(kernel.shape))}
-        return resharpen(data, wiener(data - level, kernel, self.nsr), kernel, sigma)
+    def estimate(self, data: np.ndarray, level: float, kernel: np.ndarray) -> np.ndarray:
+        return wiener(data - level, kernel, self.nsr)
 
 
 class RoiDeblurrer:

@@ -22,7 +22,7 @@ from starenv.frames import ARCSEC
 from starenv.gyro import Gyro, GyroSamples
 from starenv.render import DETECTABLE_SNR, StarRenderer, StarTruth, still_image
 from starenv.scenario import Scenario
-from starenv.sky import load_catalog
+from starenv.sky import StarCatalog, load_catalog
 
 
 @dataclass
@@ -52,9 +52,11 @@ class Frame:
 class StarSensor:
     """Steps a :class:`~starenv.scenario.Scenario`: call :meth:`reset` with a seed, then :meth:`next_frame`."""
 
-    def __init__(self, scenario: Scenario):
+    def __init__(self, scenario: Scenario, catalog: StarCatalog | None = None):
+        """``catalog``: the sky to render (default: the scenario's, Hp <= ``mag_limit`` at its ``epoch``); dataset
+        generators pass an edited one (stars removed, false stars added, positions or magnitudes perturbed)."""
         self.scenario = scenario
-        self.catalog = load_catalog(scenario.mag_limit, scenario.epoch)
+        self.catalog = load_catalog(scenario.mag_limit, scenario.epoch) if catalog is None else catalog
         self.renderers = []
         self.backgrounds = []
         for head in scenario.heads:

@@ -171,6 +171,25 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_dataset(args) -> int:
+    from starenv.datasets import build_dataset, load_spec
+
+    if args.jobs is not None and args.jobs < 1:
+        raise ValueError(f"--jobs: expected an integer >= 1, got {args.jobs}")
+    spec = load_spec(args.spec)
+    print(f"{spec.name}: {spec.kind}, {spec.samples} samples in {spec.n_shards} shards, spec {spec.digest[:12]}")
+    build_dataset(spec, args.out, jobs=args.jobs, use_ray=args.ray is not None, ray_address=args.ray or None,
+                  progress=not args.quiet)
+    print(f"dataset: {args.out}")
+    return 0
+
+
+def cmd_train(args) -> int:
+    from starenv.agents.learned.train import main as train_main
+
+    return train_main(args.rest)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="starenv", description="Star sensor simulator under dynamic conditions")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -210,6 +229,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="run on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_bench)
+    p = sub.add_parser("dataset", help="generate a learning dataset (shards of simulated samples) from a spec")
+    p.add_argument("spec", help="dataset spec (.toml), see starenv/datasets/spec.py")
+    p.add_argument("--out", required=True, help="output folder (dataset.json and shard-NNNNN.npz)")
+    p.add_argument("--jobs", type=int, default=None, help="local worker processes (default: the CPU count)")
+    p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="build on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(fn=cmd_dataset)
+    p = sub.add_parser("train", help="train a learned agent on a dataset (starenv train --help)", add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(fn=cmd_train)
     args = parser.parse_args(argv)
     try:
         return args.fn(args)

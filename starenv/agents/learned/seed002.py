@@ -1,0 +1,185 @@
+"""Seed 002's end-to-end identifier network (Han et al. 2021, Sec. 3): a raw smeared star image in, the index of
+the navigation star on the boresight (the "main star") out.
+
+Architecture (paper, Figs. 4-6 and Eqs. 6-11), every size a field of :class:`Seed002Config`:
+
+* preprocessing: the raw frame (DN) is area-resized to ``input_size`` (paper: 1024 -> 256), its median (the
+  background) subtracted and the result compressed as ``asinh(x / scale_dn)``; the paper's "normalised with a mean
+  and variance of 0.1" does not fix a scale for raw DN, so this is a choice.
+* feature extractor: a 3x3 stem convolution, a stride-2 max-pool and six ResNet basic blocks (two 3x3 convolutions,
+  BatchNorm, ReLU; a 1x1 projection shortcut where the shape changes), blocks 1, 3 and 5 with stride 2: four
+  down-samplings, ``input_size / 16`` squared tokens of ``widths[-1]`` = D channels (paper: 256 -> 64 x 16 x 16).
+* tokens: the feature map flattened to N tokens, a learnable positional embedding added to them, a learnable class
+  ("semantic") token prepended without one (Eq. 6).
+* encoder: ``depth`` pre-LayerNorm blocks (Eq. 10) of multi-head self-attention, each of the ``heads`` heads of
+  dimension ``head_dim`` (Eq. 7-8 give each head the full D, which is what makes 6 heads with D = 64 well-defined;
+  the paper's Eq. 9 omits the 1/sqrt(d) scaling, kept here as in every Transformer) and a GELU MLP of width
+  ``mlp_dim`` (not given in the paper), with residuals.
+* head: LayerNorm of the class token (Eq. 11), one linear layer over the navigation stars.
+
+:func:`parameter_count` gives the parameter count in closed form from the config (tested against the module).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+
+@dataclass(frozen=True)
+class Seed002Config:
+    """Sizes of the network; the defaults are the paper's where it gives them (``mlp_dim`` and ``widths`` except the
+    last are not given; the paper's widths are in its Fig. 6 only)."""
+
+    n_classes: int = 4331
+    input_size: int = 256
+    stem_width: int = 16
+    widths: tuple[int, ...] = (16, 16, 32, 32, 64, 64)
+    depth: int = 8
+    heads: int = 6
+    head_dim: int = 64
+    mlp_dim: int = 256
+    scale_dn: float = 10.0
+
+    def __post_init__(self):
+        if len(self.widths) != 6:
+            raise ValueError(f"widths: expected 6 basic-block widths, got {self.widths!r}")
+        if self.input_size % 16:
+            raise ValueError(f"input_size: expected a multiple of 16 (four stride-2 stages), got {self.input_size}")
+        for name in ("n_classes", "input_size", "stem_width", "depth", "heads", "head_dim", "mlp_dim"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)!r}")
+        if not self.scale_dn > 0:
+            raise ValueError(f"scale_dn: expected a positive number of DN, got {self.scale_dn!r}")
+
+    @property
+    def dim(self) -> int:
+        """D, the token dimension: the last block's channels."""
+        return self.widths[-1]
+
+    @property
+    def tokens(self) -> int:
+        """N, the feature-map tokens (class token not counted)."""
+        return (self.input_size // 16) ** 2
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["widths"] = list(self.widths)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Seed002Config:
+        return cls(**{**d, "widths": tuple(d["widths"])})
+
+
+class BasicBlock(nn.Module):
+    """ResNet basic block: conv3x3-BN-ReLU-conv3x3-BN, plus the (projected) input, ReLU."""
+
+    def __init__(self, c_in: int, c_out: int, stride: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(c_in, c_out, 3, stride, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(c_out)
+        self.conv2 = nn.Conv2d(c_out, c_out, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(c_out)
+        self.shortcut = nn.Identity()
+        if stride != 1 or c_in != c_out:
+            self.shortcut = nn.Sequential(nn.Conv2d(c_in, c_out, 1, stride, bias=False), nn.BatchNorm2d(c_out))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = F.relu(self.bn1(self.conv1(x)))
+        return F.relu(self.bn2(self.conv2(y)) + self.shortcut(x))
+
+
+class Attention(nn.Module):
+    """Multi-head self-attention with ``heads`` heads of ``head_dim`` each (Eqs. 7-9)."""
+
+    def __init__(self, dim: int, heads: int, head_dim: int):
+        super().__init__()
+        self.heads, self.head_dim = heads, head_dim
+        self.qkv = nn.Linear(dim, 3 * heads * head_dim)
+        self.out = nn.Linear(heads * head_dim, dim)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        b, n, _ = z.shape
+        q, k, v = self.qkv(z).view(b, n, 3, self.heads, self.head_dim).permute(2, 0, 3, 1, 4)
+        a = torch.softmax(q @ k.transpose(-1, -2) * self.head_dim**-0.5, dim=-1)
+        return self.out((a @ v).transpose(1, 2).reshape(b, n, self.heads * self.head_dim))
+
+
+class EncoderBlock(nn.Module):
+    """Pre-LN Transformer block (Eq. 10): z' = MSA(LN(z)) + z; z = MLP(LN(z')) + z'."""
+
+    def __init__(self, dim: int, heads: int, head_dim: int, mlp_dim: int):
+        super().__init__()
+        self.ln1 = nn.LayerNorm(dim)
+        self.attn = Attention(dim, heads, head_dim)
+        self.ln2 = nn.LayerNorm(dim)
+        self.mlp = nn.Sequential(nn.Linear(dim, mlp_dim), nn.GELU(), nn.Linear(mlp_dim, dim))
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        z = z + self.attn(self.ln1(z))
+        return z + self.mlp(self.ln2(z))
+
+
+class Seed002Net(nn.Module):
+    """Raw frames (B, H, W) or (B, 1, H, W) in DN -> class logits (B, n_classes)."""
+
+    def __init__(self, config: Seed002Config):
+        super().__init__()
+        self.config = c = config
+        self.stem = nn.Sequential(nn.Conv2d(1, c.stem_width, 3, 1, 1, bias=False), nn.BatchNorm2d(c.stem_width),
+                                  nn.ReLU(), nn.MaxPool2d(2))
+        blocks, c_in = [], c.stem_width
+        for i, width in enumerate(c.widths):
+            blocks.append(BasicBlock(c_in, width, 2 if i in (0, 2, 4) else 1))
+            c_in = width
+        self.blocks = nn.Sequential(*blocks)
+        self.pos = nn.Parameter(torch.zeros(1, c.tokens, c.dim))
+        self.cls = nn.Parameter(torch.zeros(1, 1, c.dim))
+        nn.init.trunc_normal_(self.pos, std=0.02)
+        nn.init.trunc_normal_(self.cls, std=0.02)
+        self.encoder = nn.Sequential(*[EncoderBlock(c.dim, c.heads, c.head_dim, c.mlp_dim) for _ in range(c.depth)])
+        self.norm = nn.LayerNorm(c.dim)
+        self.head = nn.Linear(c.dim, c.n_classes)
+
+    def preprocess(self, frames: torch.Tensor) -> torch.Tensor:
+        """Raw DN frames -> the network's normalised (B, 1, input_size, input_size) input (see the module doc)."""
+        x = frames.float()
+        if x.dim() == 3:
+            x = x.unsqueeze(1)
+        size = self.config.input_size
+        if x.shape[-2:] != (size, size):
+            x = F.adaptive_avg_pool2d(x, size) if x.shape[-1] % size == 0 == x.shape[-2] % size else F.interpolate(
+                x, size=(size, size), mode="area")
+        background = x.flatten(1).median(dim=1).values.view(-1, 1, 1, 1)
+        return torch.asinh((x - background) / self.config.scale_dn)
+
+    def features(self, frames: torch.Tensor) -> torch.Tensor:
+        """The CNN's feature map (B, D, input_size / 16, input_size / 16)."""
+        return self.blocks(self.stem(self.preprocess(frames)))
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        f = self.features(frames)
+        tokens = f.flatten(2).transpose(1, 2) + self.pos
+        z = torch.cat([self.cls.expand(len(tokens), -1, -1), tokens], dim=1)
+        z = self.encoder(z)
+        return self.head(self.norm(z[:, 0]))
+
+
+def parameter_count(c: Seed002Config) -> int:
+    """Trainable parameters of :class:`Seed002Net` for config ``c``, in closed form."""
+    bn = 2  # weight and bias per channel (running statistics are buffers)
+    n = 9 * c.stem_width + bn * c.stem_width
+    c_in = c.stem_width
+    for i, w in enumerate(c.widths):
+        n += 9 * c_in * w + bn * w + 9 * w * w + bn * w
+        if i in (0, 2, 4) or c_in != w:
+            n += c_in * w + bn * w
+        c_in = w
+    d, inner = c.dim, c.heads * c.head_dim
+    per_block = 2 * 2 * d + (d * 3 * inner + 3 * inner) + (inner * d + d) + (d * c.mlp_dim + c.mlp_dim) + (
+        c.mlp_dim * d + d)
+    return n + c.tokens * d + d + c.depth * per_block + 2 * d + d * c.n_classes + c.n_classes

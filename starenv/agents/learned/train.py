@@ -1,0 +1,249 @@
+"""``starenv train``: train seed 002's network on a ``main_star`` dataset, seeded, checkpointed and resumable.
+
+    starenv train --data DATA --out RUN [--val VAL] [--epochs N] [--batch B] [--lr LR] [--seed S]
+                  [--device cpu|cuda] [--set key=value ...] [--rot90] [--max-minutes M] [--resume]
+
+* Deterministic on CPU: ``torch.manual_seed(seed)``, ``torch.use_deterministic_algorithms(True)``, data read in
+  this process in an order that depends only on (seed, epoch) (:class:`~starenv.agents.learned.data.ShardSampler`);
+  the same command gives bit-identical weights.  ``--rot90`` turns each image by a multiple of 90 deg about its
+  centre, drawn from (seed, epoch, batch): a roll of the sensor, which leaves the boresight star's label unchanged
+  (exact for a square sensor whose principal point is the image centre).
+* ``RUN/checkpoint.pt`` (model, optimiser, epoch, batch, metrics so far) is written after every epoch and every
+  ``--checkpoint-every`` batches, whole and then moved into place; ``--resume`` continues from it and replays the
+  remaining batches exactly.
+* ``RUN/weights.pt`` holds the state dict only (``torch.save``; load with ``torch.load(..., weights_only=True)``)
+  and ``RUN/manifest.json`` the model config, the class list (HIP numbers, label order), the dataset's identity
+  (name, spec digest, project version), the git commit, the command and the metrics per epoch.
+* ``--set key=value`` sets a :class:`~starenv.agents.learned.seed002.Seed002Config` field (``depth=4``,
+  ``widths=[8,16,16,32,32,64]``); ``n_classes`` comes from the dataset.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from starenv.agents.learned.data import ShardDataset, ShardSampler
+from starenv.agents.learned.seed002 import Seed002Config, Seed002Net
+
+
+def _atomic_save(obj, path: Path) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _git_commit() -> str | None:
+    try:
+        root = Path(__file__).resolve().parents[3]
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def parse_config(pairs: list[str], n_classes: int) -> Seed002Config:
+    """A config from ``key=value`` pairs (values in JSON) over the defaults, with the dataset's class count."""
+    names = {f.name for f in fields(Seed002Config)}
+    values: dict = {}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        if not sep or key not in names or key == "n_classes":
+            raise ValueError(f"--set {pair!r}: expected KEY=VALUE with KEY one of "
+                             f"{', '.join(sorted(names - {'n_classes'}))}")
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--set {pair!r}: VALUE must be JSON ({exc})") from exc
+        values[key] = tuple(value) if isinstance(value, list) else value
+    return Seed002Config(n_classes=n_classes, **values)
+
+
+def _rot90(images: torch.Tensor, seed: int, epoch: int, batch: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed((seed * 1_000_003 + epoch) * 1_000_003 + batch)
+    k = torch.randint(0, 4, (len(images),), generator=g)
+    return torch.stack([torch.rot90(img, int(q), dims=(-2, -1)) for img, q in zip(images, k, strict=True)])
+
+
+@torch.no_grad()
+def evaluate(model: Seed002Net, dataset: ShardDataset, device: str, batch: int = 256) -> dict:
+    """Top-1 and top-5 accuracy and mean cross-entropy of ``model`` on every sample of ``dataset``."""
+    model.eval()
+    order = ShardSampler(dataset, 0, shuffle=False).order()
+    correct1 = correct5 = 0
+    loss = 0.0
+    for start in range(0, len(order), batch):
+        x, y = dataset.batch(order[start:start + batch])
+        logits = model(x.to(device))
+        y = y.to(device)
+        loss += float(F.cross_entropy(logits, y, reduction="sum"))
+        top = logits.topk(min(5, logits.shape[1]), dim=1).indices
+        correct1 += int((top[:, 0] == y).sum())
+        correct5 += int((top == y[:, None]).any(dim=1).sum())
+    n = len(order)
+    return {"top1": correct1 / n, "top5": correct5 / n, "loss": loss / n, "samples": n}
+
+
+def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, epochs: int = 10, batch: int = 64,
+          lr: float = 1e-3, seed: int = 0, device: str = "cpu", config_pairs: list[str] | None = None,
+          rot90: bool = False, max_minutes: float | None = None, resume: bool = False,
+          checkpoint_every: int = 100, progress: bool = True, command: str | None = None, log=print) -> dict:
+    """Train and write ``out``/weights.pt and manifest.json; returns the manifest."""
+    from tqdm import tqdm
+
+    if device not in ("cpu", "cuda"):
+        raise ValueError(f"--device: expected 'cpu' or 'cuda', got {device!r}")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available to this torch build")
+    for name, value, low in (("--epochs", epochs, 1), ("--batch", batch, 1), ("--checkpoint-every", checkpoint_every,
+                                                                                1)):
+        if not isinstance(value, int) or value < low:
+            raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+    if not lr > 0:
+        raise ValueError(f"--lr: expected a positive number, got {lr!r}")
+    torch.manual_seed(seed)
+    torch.use_deterministic_algorithms(True)
+    dataset = ShardDataset(data)
+    val_set = ShardDataset(val) if val is not None else None
+    spec = dataset.info["spec"]
+    classes = _class_hips(spec)
+    config = parse_config(config_pairs or [], len(classes))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = Seed002Net(config).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    sampler = ShardSampler(dataset, seed)
+    n_batches = len(dataset) // batch  # the last partial batch of an epoch is dropped (BatchNorm statistics)
+    total = epochs * n_batches
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=total, pct_start=0.15)
+    state = {"epoch": 0, "batch": 0, "history": [], "train_seconds": 0.0}
+    ckpt = out / "checkpoint.pt"
+    if resume and ckpt.is_file():
+        saved = torch.load(ckpt, weights_only=True, map_location=device)
+        if saved["spec_digest"] != dataset.spec_digest or saved["config"] != config.to_dict():
+            raise ValueError(f"--resume: {ckpt} is from another dataset or model config")
+        model.load_state_dict(saved["model"])
+        opt.load_state_dict(saved["optimizer"])
+        sched.load_state_dict(saved["scheduler"])
+        state = saved["state"]
+        log(f"resuming at epoch {state['epoch']}, batch {state['batch']}")
+
+    def checkpoint():
+        _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                      "state": state, "spec_digest": dataset.spec_digest, "config": config.to_dict()}, ckpt)
+
+    t0 = time.perf_counter() - state["train_seconds"]
+    stopped = False
+    bar = tqdm(total=total, initial=state["epoch"] * n_batches + state["batch"], unit="batch", disable=not progress,
+               file=sys.stderr, desc="train")
+    try:
+        while state["epoch"] < epochs and not stopped:
+            epoch = state["epoch"]
+            sampler.set_epoch(epoch)
+            order = sampler.order()
+            model.train()
+            for b in range(state["batch"], n_batches):
+                x, y = dataset.batch(order[b * batch:(b + 1) * batch])
+                if rot90:
+                    x = _rot90(x, seed, epoch, b)
+                loss = F.cross_entropy(model(x.to(device)), y.to(device))
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                sched.step()
+                state["batch"] = b + 1
+                state["train_seconds"] = time.perf_counter() - t0
+                bar.update(1)
+                bar.set_postfix(epoch=epoch, loss=f"{float(loss):.3f}")
+                if max_minutes is not None and state["train_seconds"] > 60.0 * max_minutes:
+                    stopped = True
+                    break
+                if state["batch"] % checkpoint_every == 0:
+                    checkpoint()
+            if stopped:
+                break
+            record = {"epoch": epoch, "last_loss": float(loss), "train_seconds": round(state["train_seconds"], 1)}
+            if val_set is not None:
+                record["val"] = evaluate(model, val_set, device)
+            state["history"].append(record)
+            state["epoch"], state["batch"] = epoch + 1, 0
+            checkpoint()
+            log(json.dumps(record))
+    finally:
+        bar.close()
+    checkpoint()
+    _atomic_save(model.state_dict(), out / "weights.pt")
+    manifest = {
+        "model": "starenv.agents.learned.seed002:Seed002Net",
+        "config": config.to_dict(),
+        "classes_hip": [int(h) for h in classes],
+        "dataset": {"name": dataset.info["name"], "spec_digest": dataset.spec_digest,
+                    "starenv_version": dataset.info["starenv_version"], "samples": len(dataset)},
+        "val_dataset": None if val_set is None else {"name": val_set.info["name"],
+                                                     "spec_digest": val_set.spec_digest},
+        "git_commit": _git_commit(),
+        "command": command,
+        "seed": seed, "epochs": epochs, "batch": batch, "lr": lr, "rot90": rot90, "device": device,
+        "epochs_done": state["epoch"], "stopped_early": stopped,
+        "train_seconds": round(state["train_seconds"], 1),
+        "metrics": state["history"],
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    return manifest
+
+
+def _class_hips(spec: dict) -> np.ndarray:
+    """The dataset's classes (HIP numbers in label order), recomputed from its spec."""
+    from starenv.datasets import load_spec, navigation_stars
+
+    return navigation_stars(load_spec(spec))[0]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="starenv train", description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", required=True, help="training dataset folder (starenv dataset, kind main_star)")
+    p.add_argument("--val", default=None, help="validation dataset folder, evaluated after every epoch")
+    p.add_argument("--out", required=True, help="run folder: checkpoint.pt, weights.pt, manifest.json")
+    p.add_argument("--epochs", type=int, default=10)
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate of the one-cycle schedule (Adam)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a Seed002Config field")
+    p.add_argument("--rot90", action="store_true", help="augment with rolls by multiples of 90 deg")
+    p.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much training")
+    p.add_argument("--checkpoint-every", type=int, default=100, help="batches between checkpoints")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    command = "starenv train " + " ".join(argv if argv is not None else sys.argv[1:])
+    manifest = train(args.data, args.out, val=args.val, epochs=args.epochs, batch=args.batch, lr=args.lr,
+                     seed=args.seed, device=args.device, config_pairs=args.set, rot90=args.rot90,
+                     max_minutes=args.max_minutes, resume=args.resume, checkpoint_every=args.checkpoint_every,
+                     progress=not args.quiet, command=command)
+    print(json.dumps(manifest["metrics"][-1] if manifest["metrics"] else {}, indent=None))
+    print(f"weights: {Path(args.out) / 'weights.pt'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

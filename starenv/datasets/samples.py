@@ -1,0 +1,169 @@
+"""One sample drawn from the simulator: a frame of head 0 rendered by :class:`~starenv.sensor.StarSensor` at a drawn
+attitude and rate, with its labels.
+
+Sample ``i`` of a spec is a pure function of (spec, ``i``): ``np.random.SeedSequence([spec.seed, i]).spawn(2)``
+gives the stream of the draws (attitude, rates, randomised overrides, star edits, in that order) and the sensor's
+noise seed.  The scenario's motion is replaced by a constant rate, and its initial attitude chosen so that the drawn
+attitude holds at head 0's mid-exposure of frame 0 (for ``main_star``: the navigation star sits on the boresight at
+mid-exposure, its trail centred on the image centre).  Rates are drawn in head 0's camera frame (+Z boresight):
+``(r cos a, r sin a, roll rate)`` with ``r`` the two-axis resultant and ``a`` the smear direction, and turned into
+the body frame through the mounting.
+
+Star edits act on the sky the sensor renders (a cone about the boresight): ``missing`` removes 1..max_changed stars
+that fall in the frame (never the main star), ``false`` adds 1..max_changed stars at uniform pixel positions with
+magnitudes uniform in ``false_mag_range`` (HIP id -1); position noise shifts each star's direction (its whole trail)
+by a Gaussian of ``position_sigma_px`` px per axis at head 0's plate scale; magnitude noise adds a Gaussian to Hp.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from starenv.datasets.spec import VARIANTS, DatasetSpec
+from starenv.frames import DEG, pointing, radec_to_unit, unit_to_radec
+from starenv.sensor import StarSensor
+from starenv.sky import StarCatalog, load_catalog
+
+MAIN_STAR_FIELDS = ("image", "label", "hip", "attitude", "rate_dps", "variant")
+CENTROID_FIELDS = ("xy", "catalog_id", "magnitude", "count", "attitude", "rate_dps", "variant")
+
+
+@functools.lru_cache(maxsize=8)
+def _navigation(mag_limit: float, epoch: float, ra_deg: float, dec_deg: float, radius_deg: float):
+    cat = load_catalog(mag_limit, epoch)
+    rows = cat.cone(radec_to_unit(np.radians(ra_deg), np.radians(dec_deg)), np.radians(radius_deg))
+    return cat.hip[rows].copy(), cat.unit[rows].copy()
+
+
+def navigation_stars(spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The classes of a ``main_star`` spec: HIP numbers (sorted; the label is the index) and ICRS unit vectors of the
+    stars with Hp <= ``pointing.mag_limit`` within ``pointing.radius_deg`` of the pointing centre."""
+    p = spec.pointing
+    epoch = spec.load_scenario().epoch
+    return _navigation(p.mag_limit, epoch, p.center_ra_deg, p.center_dec_deg, p.radius_deg)
+
+
+def _initial_pointing(att_mid: Rotation, rate_body: np.ndarray, t_mid: float, mounting: Rotation) -> dict:
+    """The scenario's ``motion`` table: constant body rate, initial attitude so that ``att_mid`` holds at ``t_mid``.
+
+    ``ConstantRate.delta(t) = Rotation.from_rotvec(-rate t)`` and attitude(t) = delta(t) * initial."""
+    initial = Rotation.from_rotvec(rate_body * t_mid) * att_mid
+    cam0 = mounting * initial
+    ra, dec = unit_to_radec(cam0.as_matrix()[2])
+    roll = -(cam0 * pointing(float(ra), float(dec), 0.0).inv()).as_rotvec()[2]
+    return {"kind": "constant_rate", "rate_dps": [float(x) for x in rate_body / DEG],
+            "initial_ra_deg": float(np.degrees(ra)), "initial_dec_deg": float(np.degrees(dec)),
+            "initial_roll_deg": float(np.degrees(roll))}
+
+
+def draw(spec: DatasetSpec, index: int) -> dict:
+    """The sample's drawn parameters: ``main`` (class index, -1 for uniform pointing), ``attitude`` (inertial -> body
+    Rotation at mid-exposure), ``rate_cam_dps`` (3,), ``variant``, ``changed`` (stars edited), ``randomized``
+    (scenario overrides) and ``seeds`` (the two SeedSequences: draws, sensor noise)."""
+    seeds = np.random.SeedSequence([spec.seed, index]).spawn(2)
+    rng = np.random.default_rng(seeds[0])
+    sc = spec.load_scenario()
+    mounting = sc.heads[0].camera.mounting
+    p, r = spec.pointing, spec.rates
+    if p.mode == "main_star":
+        hip, unit = navigation_stars(spec)
+        main = int(rng.integers(len(hip)))
+        step = p.roll_step_deg
+        roll = float(rng.integers(round(360.0 / step))) * step if step > 0 else float(rng.uniform(0.0, 360.0))
+        ra, dec = unit_to_radec(unit[main])
+        cam = pointing(float(ra), float(dec), roll * DEG)
+    else:
+        main = -1
+        cam = Rotation.random(random_state=rng)
+    if r.two_axis_range_dps is not None:
+        magnitude = float(rng.uniform(*r.two_axis_range_dps))
+    else:
+        magnitude = float(r.two_axis_dps[rng.integers(len(r.two_axis_dps))])
+    angle = float(rng.integers(r.directions)) * 360.0 / r.directions if r.directions else float(rng.uniform(0, 360))
+    roll_rate = float(r.roll_dps[rng.integers(len(r.roll_dps))])
+    rate_cam = np.array([magnitude * np.cos(angle * DEG), magnitude * np.sin(angle * DEG), roll_rate])
+    randomized = {key: float(rng.uniform(lo, hi)) for key, (lo, hi) in spec.randomize.items()}
+    variant = spec.stars.variants[rng.integers(len(spec.stars.variants))]
+    changed = 0 if variant == "clean" else int(rng.integers(1, spec.stars.max_changed + 1))
+    return {"main": main, "attitude": mounting.inv() * cam, "rate_cam_dps": rate_cam, "variant": variant,
+            "changed": changed, "randomized": randomized, "rng": rng, "sensor_seed": seeds[1]}
+
+
+def render(spec: DatasetSpec, params: dict) -> tuple[StarSensor, object]:
+    """Render frame 0 of head 0 for drawn ``params`` (see :func:`draw`): the sensor and its :class:`Frame`."""
+    rng = params["rng"]
+    base = spec.load_scenario(params["randomized"])
+    head = base.heads[0]
+    cam = head.camera
+    readout = head.detector.line_time_s * (cam.height - 1)
+    t_mid = 0.5 * (readout + base.exposure_s)
+    att = params["attitude"]
+    rate_body = cam.mounting.inv().apply(np.asarray(params["rate_cam_dps"], dtype=np.float64) * DEG)
+    motion = _initial_pointing(att, rate_body, t_mid, cam.mounting)
+    sc = spec.load_scenario({**params["randomized"], "motion": motion})
+    catalog = _edited_sky(spec, sc, params, rng)
+    sensor = StarSensor(sc, catalog=catalog)
+    sensor.reset(params["sensor_seed"])
+    return sensor, sensor.next_frame()
+
+
+def _edited_sky(spec: DatasetSpec, sc, params: dict, rng: np.random.Generator) -> StarCatalog:
+    """The sky about head 0's boresight with the sample's star edits and noise (see the module docstring)."""
+    full = load_catalog(sc.mag_limit, sc.epoch)
+    cam = sc.heads[0].camera
+    cam_rot = cam.inertial_to_camera(params["attitude"])
+    boresight = cam_rot.inv().apply([0.0, 0.0, 1.0])
+    smear = np.linalg.norm(params["rate_cam_dps"]) * DEG * sc.exposure_s
+    rows = full.cone(boresight, min(np.pi, cam.half_diagonal + smear + 0.5 * DEG))
+    hip, mag, unit = full.hip[rows].copy(), full.magnitude[rows].copy(), full.unit[rows].copy()
+    st = spec.stars
+    if params["variant"] == "missing" and len(hip):
+        xy, in_front = cam.project(cam_rot.apply(unit))
+        inside = in_front & cam.in_frame(xy)
+        if params["main"] >= 0:
+            inside &= hip != navigation_stars(spec)[0][params["main"]]
+        candidates = np.flatnonzero(inside)
+        drop = rng.choice(candidates, size=min(params["changed"], len(candidates)), replace=False)
+        keep = np.setdiff1d(np.arange(len(hip)), drop)
+        hip, mag, unit = hip[keep], mag[keep], unit[keep]
+    if params["variant"] == "false":
+        n = params["changed"]
+        xy = np.column_stack([rng.uniform(-0.5, cam.width - 0.5, n), rng.uniform(-0.5, cam.height - 0.5, n)])
+        fake_unit = cam_rot.inv().apply(cam.unproject(xy))
+        hip = np.concatenate([hip, np.full(n, -1, dtype=np.int64)])
+        mag = np.concatenate([mag, rng.uniform(*st.false_mag_range, n)])
+        unit = np.vstack([unit, fake_unit])
+    if st.position_sigma_px > 0 and len(hip):
+        e1 = np.cross(unit, [0.0, 0.0, 1.0])
+        e1[np.linalg.norm(e1, axis=1) < 1e-9] = [1.0, 0.0, 0.0]
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        e2 = np.cross(unit, e1)
+        shift = rng.normal(0.0, st.position_sigma_px / cam.fx, (len(hip), 2))
+        unit = unit + shift[:, :1] * e1 + shift[:, 1:] * e2
+        unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    if st.magnitude_sigma > 0 and len(hip):
+        mag = mag + rng.normal(0.0, st.magnitude_sigma, len(hip))
+    return StarCatalog(hip=hip, magnitude=mag, unit=unit, epoch=full.epoch)
+
+
+def sample(spec: DatasetSpec, index: int) -> dict[str, np.ndarray]:
+    """Sample ``index`` of ``spec`` as arrays (fields: ``MAIN_STAR_FIELDS`` or ``CENTROID_FIELDS``)."""
+    params = draw(spec, index)
+    _, frame = render(spec, params)
+    head = frame.heads[0]
+    common = {
+        "attitude": params["attitude"].as_quat().astype(np.float64),
+        "rate_dps": np.asarray(params["rate_cam_dps"], dtype=np.float64),
+        "variant": np.int8(VARIANTS.index(params["variant"])),
+    }
+    if spec.kind == "main_star":
+        hip = navigation_stars(spec)[0]
+        return {"image": head.image, "label": np.int32(params["main"]), "hip": np.int64(hip[params["main"]]),
+                **common}
+    truth = head.truth
+    keep = truth.detectable
+    return {"xy": truth.xy_centroid[keep].astype(np.float64), "catalog_id": truth.catalog_id[keep].astype(np.int64),
+            "magnitude": truth.magnitude[keep].astype(np.float64), "count": np.int32(keep.sum()), **common}

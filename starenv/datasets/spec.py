@@ -1,0 +1,293 @@
+"""Dataset specs: a scenario, the randomised overrides each sample draws, the kind of sample and the sizes.
+
+A spec is a TOML file (or dict), validated on load; a bad value raises :class:`DatasetError` naming the file and the
+dotted key.  Layout (every table but the top level is optional)::
+
+    name = "seed002_orion"
+    kind = "main_star"            # "main_star": raw image + boresight star label (seed 002)
+                                  # "centroids": truth centroids with HIP ids, false stars id -1 (seed 004)
+    scenario = "paper_002"        # bundled name or path (relative paths: from the spec file's folder)
+    samples = 16000               # sample indices 0 .. samples-1
+    shard_size = 500              # samples per shard file (the last shard may be shorter)
+    seed = 0                      # sample i draws from np.random.SeedSequence([seed, i])
+
+    [overrides]                   # fixed scenario overrides, dotted key paths (as `starenv run --set`)
+    "heads.0.width" = 128
+
+    [randomize]                   # per-sample scenario overrides drawn uniformly in [low, high]
+    "heads.0.detector.read_noise_e" = [5.0, 15.0]
+
+    [pointing]
+    mode = "main_star"            # "main_star": head 0's boresight on a navigation star at mid-exposure (seed 002)
+                                  # "uniform": attitude uniform on the rotation group (roll included)
+    mag_limit = 6.0               # navigation stars (the classes): Hp <= mag_limit ...
+    center_ra_deg = 83.8          # ... within radius_deg of this direction (radius 180: the whole sky)
+    center_dec_deg = -5.4
+    radius_deg = 180.0
+    roll_step_deg = 0.0           # 0: roll uniform in [0, 360); > 0: a multiple of the step (seed 002: 30)
+
+    [rates]                       # head 0's camera frame: two-axis (in-plane) magnitude, its direction, roll rate
+    two_axis_dps = [0.0, 2.0, 4.0, 6.0, 8.0]    # resultant |(wx, wy)| drawn from this list ...
+    two_axis_range_dps = [0.0, 10.0]            # ... or uniformly in this range (give one of the two)
+    directions = 8                # smear directions at 360/n deg (0: uniform)
+    roll_dps = [0.0, 6.0, -6.0]   # wz drawn from this list
+
+    [stars]
+    variants = ["clean", "false", "missing"]    # one drawn per sample (seed 002's three training sets)
+    max_changed = 2               # 1 .. max_changed false stars added / field stars removed
+    false_mag_range = [3.0, 6.0]  # magnitude of a false star (uniform)
+    position_sigma_px = 0.0       # Gaussian shift of every star's direction, px on head 0 (whole trail)
+    magnitude_sigma = 0.0         # Gaussian magnitude noise, mag
+
+The spec's identity (:attr:`DatasetSpec.digest`) is the SHA-256 of its validated contents, the scenario's text and
+the format version; it travels in every shard and in trained weights' manifests.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from starenv import scenario as scenario_mod
+
+FORMAT_VERSION = 1
+KINDS = ("main_star", "centroids")
+VARIANTS = ("clean", "false", "missing")
+
+
+class DatasetError(ValueError):
+    """A dataset spec that does not describe a valid dataset."""
+
+
+@dataclass(frozen=True)
+class PointingSpec:
+    mode: str = "main_star"
+    mag_limit: float = 6.0
+    center_ra_deg: float = 0.0
+    center_dec_deg: float = 0.0
+    radius_deg: float = 180.0
+    roll_step_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class RateSpec:
+    two_axis_dps: tuple[float, ...] | None = (0.0,)
+    two_axis_range_dps: tuple[float, float] | None = None
+    directions: int = 8
+    roll_dps: tuple[float, ...] = (0.0,)
+
+
+@dataclass(frozen=True)
+class StarsSpec:
+    variants: tuple[str, ...] = ("clean",)
+    max_changed: int = 2
+    false_mag_range: tuple[float, float] = (3.0, 6.0)
+    position_sigma_px: float = 0.0
+    magnitude_sigma: float = 0.0
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """A validated dataset spec (see the module docstring); ``scenario_text`` is the scenario file's text."""
+
+    name: str
+    kind: str
+    scenario: str
+    scenario_text: str
+    samples: int
+    shard_size: int
+    seed: int
+    overrides: dict[str, Any] = field(default_factory=dict)
+    randomize: dict[str, tuple[float, float]] = field(default_factory=dict)
+    pointing: PointingSpec = PointingSpec()
+    rates: RateSpec = RateSpec()
+    stars: StarsSpec = StarsSpec()
+    source: str = "<dataset>"
+
+    @property
+    def n_shards(self) -> int:
+        return math.ceil(self.samples / self.shard_size)
+
+    def shard_range(self, shard: int) -> range:
+        """Sample indices of shard ``shard``."""
+        return range(shard * self.shard_size, min(self.samples, (shard + 1) * self.shard_size))
+
+    def identity(self) -> dict:
+        """Everything that decides the samples' bytes (not the file it came from)."""
+        d = asdict(self)
+        d.pop("source")
+        d["format_version"] = FORMAT_VERSION
+        return d
+
+    @property
+    def digest(self) -> str:
+        text = json.dumps(self.identity(), sort_keys=True, default=list)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    def to_dict(self) -> dict:
+        """A dict that :func:`load_spec` turns back into this spec (the scenario inlined as its text)."""
+        d = asdict(self)
+        d.pop("source")
+        return d
+
+    def load_scenario(self, extra: dict[str, Any] | None = None) -> scenario_mod.Scenario:
+        """The scenario with the spec's fixed overrides and ``extra`` (per-sample) ones applied."""
+        data = tomllib.loads(self.scenario_text)
+        data.setdefault("name", Path(self.scenario).stem)
+        return scenario_mod.load(data, {**self.overrides, **(extra or {})})
+
+
+class _Reader:
+    """Typed access to one table of the spec that refuses unknown keys, naming ``source: dotted.key``."""
+
+    def __init__(self, data: Any, path: str, source: str):
+        self.path, self.source = path, source
+        if not isinstance(data, dict):
+            raise DatasetError(f"{source}: {path or '(top level)'}: expected a table, got {data!r}")
+        self.data, self.used = data, set()
+
+    def fail(self, key: str, expected: str, got: Any) -> None:
+        where = f"{self.path}.{key}" if self.path else key
+        found = "it is missing" if got is _MISSING else f"got {got!r}"
+        raise DatasetError(f"{self.source}: {where}: expected {expected}, {found}")
+
+    def get(self, key: str, default: Any) -> Any:
+        self.used.add(key)
+        value = self.data.get(key, default)
+        return value
+
+    def number(self, key: str, default: Any, low: float, high: float, integer: bool = False) -> Any:
+        v = self.get(key, default)
+        kind = "an integer" if integer else "a number"
+        ok = (isinstance(v, int) if integer else isinstance(v, int | float)) and not isinstance(v, bool)
+        if not ok or not math.isfinite(v) or not low <= v <= high:
+            self.fail(key, f"{kind} in [{low:g}, {high:g}]", v)
+        return v
+
+    def string(self, key: str, default: Any, choices: tuple[str, ...] | None = None) -> str:
+        v = self.get(key, default)
+        if not isinstance(v, str) or (choices and v not in choices):
+            self.fail(key, f"one of {', '.join(map(repr, choices))}" if choices else "a string", v)
+        return v
+
+    def numbers(self, key: str, default: Any, low: float, high: float, length: int | None = None) -> Any:
+        v = self.get(key, default)
+        if v is None:
+            return None
+        expected = (f"a list of {length}" if length else "a non-empty list of") + f" numbers in [{low:g}, {high:g}]"
+        ok = isinstance(v, list | tuple) and len(v) > 0 and (length is None or len(v) == length)
+        if not ok or not all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+                             and low <= x <= high for x in v):
+            self.fail(key, expected, v)
+        return tuple(float(x) for x in v)
+
+    def table(self, key: str) -> _Reader:
+        self.used.add(key)
+        return _Reader(self.data.get(key, {}), f"{self.path}.{key}" if self.path else key, self.source)
+
+    def finish(self) -> None:
+        extra = sorted(set(self.data) - self.used)
+        if extra:
+            where = f"{self.path}.{extra[0]}" if self.path else extra[0]
+            raise DatasetError(f"{self.source}: {where}: unknown key")
+
+
+_MISSING = object()
+
+
+def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec:
+    """Load and validate a dataset spec from a TOML file or a dict (as :meth:`DatasetSpec.to_dict` gives)."""
+    base = Path.cwd()
+    if isinstance(spec, dict):
+        data, source = dict(spec), source or "<dataset>"
+    else:
+        path = Path(spec)
+        source = str(path)
+        try:
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
+        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise DatasetError(f"{source}: cannot read a TOML dataset spec: {exc}") from exc
+        base = path.resolve().parent
+    top = _Reader(data, "", source)
+    name = top.string("name", "dataset")
+    kind = top.string("kind", _MISSING, KINDS)
+    scenario = top.string("scenario", _MISSING)
+    scenario_text = top.get("scenario_text", None)
+    if scenario_text is None:
+        candidate = base / scenario
+        try:
+            path = candidate if candidate.suffix == ".toml" and candidate.is_file() else scenario_mod.resolve(scenario)
+            scenario_text = path.read_text(encoding="utf-8")
+        except (scenario_mod.ScenarioError, OSError) as exc:
+            top.fail("scenario", f"a bundled scenario name or a .toml file ({exc})", scenario)
+    elif not isinstance(scenario_text, str):
+        top.fail("scenario_text", "the scenario's TOML text", scenario_text)
+    samples = top.number("samples", _MISSING, 1, 10**9, integer=True)
+    shard_size = top.number("shard_size", 1000, 1, 10**6, integer=True)
+    seed = top.number("seed", 0, 0, 2**63 - 1, integer=True)
+    overrides = top.get("overrides", {})
+    if not isinstance(overrides, dict):
+        top.fail("overrides", "a table of dotted scenario keys", overrides)
+    rnd = top.table("randomize")
+    randomize = {key: rnd.numbers(key, None, -1e12, 1e12, length=2) for key in sorted(rnd.data)}
+    for key, (low, high) in randomize.items():
+        if low > high:
+            rnd.fail(key, "[low, high] with low <= high", [low, high])
+    rnd.finish()
+
+    pt = top.table("pointing")
+    pointing = PointingSpec(
+        mode=pt.string("mode", "main_star" if kind == "main_star" else "uniform", ("main_star", "uniform")),
+        mag_limit=pt.number("mag_limit", 6.0, -2.0, 14.0),
+        center_ra_deg=pt.number("center_ra_deg", 0.0, -360.0, 360.0),
+        center_dec_deg=pt.number("center_dec_deg", 0.0, -90.0, 90.0),
+        radius_deg=pt.number("radius_deg", 180.0, 0.1, 180.0),
+        roll_step_deg=pt.number("roll_step_deg", 0.0, 0.0, 360.0),
+    )
+    pt.finish()
+    if kind == "main_star" and pointing.mode != "main_star":
+        pt.fail("mode", "'main_star' for kind = 'main_star' (the label is the boresight star)", pointing.mode)
+
+    rt = top.table("rates")
+    listed = rt.numbers("two_axis_dps", None, 0.0, 1000.0)
+    ranged = rt.numbers("two_axis_range_dps", None, 0.0, 1000.0, length=2)
+    if listed is not None and ranged is not None:
+        rt.fail("two_axis_range_dps", "either two_axis_dps or two_axis_range_dps, not both", list(ranged))
+    if ranged is not None and ranged[0] > ranged[1]:
+        rt.fail("two_axis_range_dps", "[low, high] with low <= high", list(ranged))
+    rates = RateSpec(
+        two_axis_dps=listed if listed is not None or ranged is not None else (0.0,),
+        two_axis_range_dps=ranged,
+        directions=rt.number("directions", 8, 0, 3600, integer=True),
+        roll_dps=rt.numbers("roll_dps", [0.0], -1000.0, 1000.0),
+    )
+    rt.finish()
+
+    st = top.table("stars")
+    variants = st.get("variants", ["clean"])
+    if not (isinstance(variants, list) and variants and all(v in VARIANTS for v in variants)):
+        st.fail("variants", f"a non-empty list of {', '.join(map(repr, VARIANTS))}", variants)
+    false_range = st.numbers("false_mag_range", [3.0, 6.0], -2.0, 14.0, length=2)
+    if false_range[0] > false_range[1]:
+        st.fail("false_mag_range", "[low, high] with low <= high", list(false_range))
+    stars = StarsSpec(
+        variants=tuple(variants),
+        max_changed=st.number("max_changed", 2, 1, 100, integer=True),
+        false_mag_range=false_range,
+        position_sigma_px=st.number("position_sigma_px", 0.0, 0.0, 1000.0),
+        magnitude_sigma=st.number("magnitude_sigma", 0.0, 0.0, 10.0),
+    )
+    st.finish()
+    top.finish()
+    spec = DatasetSpec(name, kind, scenario, scenario_text, samples, shard_size, seed, dict(overrides), randomize,
+                       pointing, rates, stars, source)
+    try:  # the scenario with its fixed overrides and the per-sample ones at their low ends must load
+        spec.load_scenario({k: lo for k, (lo, _) in randomize.items()})
+    except scenario_mod.ScenarioError as exc:
+        raise DatasetError(f"{source}: scenario/overrides/randomize: {exc}") from exc
+    return spec

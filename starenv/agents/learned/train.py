@@ -170,7 +170,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
                 state["batch"] = b + 1
                 state["train_seconds"] = time.perf_counter() - t0
                 bar.update(1)
-                bar.set_postfix(epoch=epoch, loss=f"{float(loss):.3f}")
+                bar.set_postfix(epoch=epoch, loss=f"{loss.item():.3f}")
                 if max_minutes is not None and state["train_seconds"] > 60.0 * max_minutes:
                     stopped = True
                     break
@@ -178,7 +178,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
                     checkpoint()
             if stopped:
                 break
-            record = {"epoch": epoch, "last_loss": float(loss), "train_seconds": round(state["train_seconds"], 1)}
+            record = {"epoch": epoch, "last_loss": loss.item(), "train_seconds": round(state["train_seconds"], 1)}
             if val_set is not None:
                 record["val"] = evaluate(model, val_set, device)
             state["history"].append(record)

@@ -1,0 +1,125 @@
+"""Dataset specs, per-sample reproducibility, the main star on the boresight, shards and resume."""
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from starenv.datasets import DatasetError, build_dataset, load_spec, navigation_stars, read_meta, sample, shard_path
+from starenv.datasets.samples import draw, render
+
+SPEC = {
+    "name": "tiny",
+    "kind": "main_star",
+    "scenario": "paper_002",
+    "samples": 7,
+    "shard_size": 3,
+    "seed": 5,
+    "overrides": {"heads.0.width": 64, "heads.0.height": 64, "heads.0.pixel_pitch_um": 192.0,
+                  "heads.0.psf_sigma_px": 0.5},
+    "randomize": {"heads.0.detector.read_noise_e": [5.0, 15.0]},
+    "pointing": {"mag_limit": 5.0, "center_ra_deg": 83.8, "center_dec_deg": -5.4, "radius_deg": 15.0,
+                 "roll_step_deg": 30.0},
+    "rates": {"two_axis_dps": [0.0, 4.0, 8.0], "directions": 8, "roll_dps": [0.0, 6.0, -6.0]},
+    "stars": {"variants": ["clean", "false", "missing"], "max_changed": 2},
+}
+
+
+def _digest(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_sample_is_a_function_of_spec_seed_and_index():
+    spec = load_spec(SPEC)
+    a, b = sample(spec, 4), sample(spec, 4)
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+    assert not np.array_equal(sample(spec, 3)["image"], a["image"])
+    other = load_spec({**SPEC, "seed": 6})
+    assert not np.array_equal(sample(other, 4)["image"], a["image"])
+
+
+@pytest.mark.parametrize("index", [0, 1, 2, 3])
+def test_main_star_sits_on_the_boresight_at_mid_exposure(index):
+    spec = load_spec(SPEC)
+    params = draw(spec, index)
+    _, frame = render(spec, params)
+    truth = frame.heads[0].truth
+    hip = navigation_stars(spec)[0][params["main"]]
+    row = np.flatnonzero(truth.catalog_id == hip)
+    assert len(row) == 1
+    np.testing.assert_allclose(truth.xy_mid[row[0]], [31.5, 31.5], atol=1e-6)  # (64 - 1) / 2
+    # the trail length is the rate's two-axis part times the exposure through the plate scale (small angles)
+    length = np.linalg.norm(truth.xy_end[row[0]] - truth.xy_start[row[0]])
+    fx = frame.heads[0].image.shape[1] / 2 / np.tan(np.radians(6.0))  # ~12 deg field on 64 px (f 58.5 mm)
+    expected = np.radians(np.hypot(*params["rate_cam_dps"][:2])) * 0.092 * fx
+    assert length == pytest.approx(expected, rel=0.02, abs=0.02)
+
+
+def test_false_and_missing_variants_edit_the_rendered_sky():
+    spec = load_spec({**SPEC, "stars": {"variants": ["false"], "max_changed": 2}})
+    for i in range(3):
+        params = draw(spec, i)
+        truth = render(spec, params)[1].heads[0].truth
+        assert (truth.catalog_id == -1).sum() == params["changed"] >= 1
+    clean = load_spec({**SPEC, "stars": {"variants": ["clean"]}})
+    missing = load_spec({**SPEC, "stars": {"variants": ["missing"], "max_changed": 2}})
+    # same draws up to the variant: the missing-star frame has `changed` fewer stars in it
+    p_clean, p_missing = draw(clean, 0), draw(missing, 0)
+    n_clean = len(render(clean, p_clean)[1].heads[0].truth)
+    n_missing = len(render(missing, p_missing)[1].heads[0].truth)
+    assert n_clean - n_missing == p_missing["changed"]
+
+
+def test_shards_are_bit_identical_and_resume_skips_complete_ones(tmp_path):
+    spec = load_spec(SPEC)
+    a = build_dataset(spec, tmp_path / "a", jobs=1, progress=False, log=lambda *_: None)
+    b = build_dataset(spec, tmp_path / "b", jobs=2, progress=False, log=lambda *_: None)
+    assert [_digest(p) for p in a] == [_digest(p) for p in b]
+    assert len(a) == 3 and read_meta(a[2])["count"] == 1
+    meta = read_meta(a[0])
+    assert meta["spec_digest"] == spec.digest and meta["first_index"] == 0
+    with np.load(a[1]) as z:
+        np.testing.assert_array_equal(z["image"][0], sample(spec, 3)["image"])
+        np.testing.assert_array_equal(z["index"], [3, 4, 5])
+    # a killed build: one shard gone, one truncated; the rebuild redoes exactly those two
+    shard_path(tmp_path / "a", 1).unlink()
+    shard_path(tmp_path / "a", 2).write_bytes(b"partial")
+    first = shard_path(tmp_path / "a", 0).stat().st_mtime_ns
+    logs = []
+    build_dataset(spec, tmp_path / "a", jobs=1, progress=False, log=logs.append)
+    assert logs == [f"reusing 1 complete shard(s) in {tmp_path / 'a'}"]
+    assert shard_path(tmp_path / "a", 0).stat().st_mtime_ns == first
+    assert [_digest(p) for p in a] == [_digest(p) for p in b]
+    info = json.loads((tmp_path / "a" / "dataset.json").read_text())
+    assert load_spec(info["spec"]).digest == spec.digest
+
+
+def test_another_spec_refuses_a_used_folder(tmp_path):
+    build_dataset(load_spec({**SPEC, "samples": 1}), tmp_path, jobs=1, progress=False)
+    with pytest.raises(DatasetError, match="holds another dataset"):
+        build_dataset(load_spec({**SPEC, "samples": 2}), tmp_path, jobs=1, progress=False)
+
+
+def test_centroid_kind_gives_truth_ids_and_false_stars():
+    spec = load_spec({**SPEC, "kind": "centroids", "pointing": {"mode": "uniform"},
+                      "stars": {"variants": ["false"], "max_changed": 1}})
+    s = sample(spec, 0)
+    assert s["count"] == len(s["xy"]) == len(s["catalog_id"])
+    assert (s["catalog_id"] == -1).sum() <= 1 and (s["catalog_id"] > 0).sum() >= 3
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("kind", "pairs", "kind: expected one of 'main_star', 'centroids'"),
+    ("samples", 0, "samples: expected an integer in"),
+    ("scenario", "nope", "scenario: expected a bundled scenario name"),
+    ("rates", {"two_axis_dps": [1.0], "two_axis_range_dps": [0.0, 2.0]}, "rates.two_axis_range_dps: expected either"),
+    ("stars", {"variants": ["clean", "blurred"]}, "stars.variants: expected a non-empty list"),
+    ("pointing", {"radius_deg": -1.0}, "pointing.radius_deg: expected a number in"),
+    ("randomize", {"heads.0.detector.read_noise_e": [3.0, 1.0]}, "randomize.heads.0.detector.read_noise_e"),
+    ("overrides", {"heads.0.width": -5}, "scenario/overrides/randomize:.*heads.0.width"),
+    ("colour", 1, "colour: unknown key"),
+])
+def test_bad_spec_names_the_field(key, value, message):
+    with pytest.raises(DatasetError, match=message):
+        load_spec({**SPEC, key: value})

@@ -184,13 +184,16 @@ def cmd_dataset(args) -> int:
     return 0
 
 
-def cmd_train(args) -> int:
-    from starenv.agents.learned.train import main as train_main
-
-    return train_main(args.rest)
-
-
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["train"]:  # its own parser, in the only module that imports torch
+        from starenv.agents.learned.train import main as train_main
+
+        try:
+            return train_main(argv[1:])
+        except (ValueError, OSError) as exc:
+            print(f"starenv train: error: {exc}", file=sys.stderr)
+            return 2
     parser = argparse.ArgumentParser(prog="starenv", description="Star sensor simulator under dynamic conditions")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("scenarios", help="list the bundled scenarios").set_defaults(fn=cmd_scenarios)
@@ -237,9 +240,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="build on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_dataset)
-    p = sub.add_parser("train", help="train a learned agent on a dataset (starenv train --help)", add_help=False)
-    p.add_argument("rest", nargs=argparse.REMAINDER)
-    p.set_defaults(fn=cmd_train)
+    sub.add_parser("train", help="train seed 002's network on a dataset (options: starenv train --help)")
     args = parser.parse_args(argv)
     try:
         return args.fn(args)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -193,6 +194,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
         "model": "starenv.agents.learned.seed002:Seed002Net",
         "config": config.to_dict(),
         "classes_hip": [int(h) for h in classes],
+        "camera": _camera(spec),
         "dataset": {"name": dataset.info["name"], "spec_digest": dataset.spec_digest,
                     "starenv_version": dataset.info["starenv_version"], "samples": len(dataset)},
         "val_dataset": None if val_set is None else {"name": val_set.info["name"],
@@ -213,6 +215,17 @@ def _class_hips(spec: dict) -> np.ndarray:
     from starenv.datasets import load_spec, navigation_stars
 
     return navigation_stars(load_spec(spec))[0]
+
+
+def _camera(spec: dict) -> dict | None:
+    """Head 0's resolution and field of view (deg) in the dataset's scenario, for the agent's check."""
+    from starenv.datasets import load_spec
+
+    try:
+        cam = load_spec(spec).load_scenario().heads[0].camera
+    except ValueError:
+        return None
+    return {"width": cam.width, "height": cam.height, "fov_deg": [math.degrees(a) for a in cam.fov]}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,149 @@
+"""Seed 002's network as an identifier: the raw frame in, catalogue ids of the detections out, every answer verified.
+
+1. The network reads head 0's raw frame and ranks the navigation stars as the one on the boresight (the paper's
+   "main star"); the ``top_k`` best are tried in turn.
+2. A candidate fixes the boresight direction but not the roll.  The catalogue stars about it are projected at roll
+   0; each (detection, catalogue star) pair at the same distance from the principal point (within
+   ``radius_px``) votes for the roll that turns one onto the other, and the ``rolls`` most voted rolls are kept.
+3. Each (main star, roll) attitude is verified against the catalogue (:mod:`starenv.agents.verify`): detections
+   paired within ``radius_px``, the attitude refined, and the false-match probability, times the hypotheses tried,
+   compared with ``max_false``; ``min_matches`` pairs are needed.  The first verified hypothesis labels the
+   detections; when none verifies, nothing is identified (a wrong main star never becomes an attitude).
+
+The network only knows the frames it was trained on: the camera must have the training field of view (checked at
+:meth:`reset`) and the boresight should sit near a navigation star of its classes (the paper's protocol), in the
+sky region the weights cover.  The frame reaches the identifier through ``images`` (each head's frame as the
+detector saw it); without it nothing is identified.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from starenv.agents.base import Stars
+from starenv.agents.learned.seed002 import Seed002Config, Seed002Net
+from starenv.agents.verify import body_vectors, labelled, verify
+from starenv.frames import pointing, unit_to_radec
+from starenv.optics import Camera
+from starenv.sky import StarCatalog
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "seed002_orion"
+
+
+def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> tuple[Seed002Net, dict]:
+    """The network of a trained run folder (``weights.pt`` + ``manifest.json``), in eval mode, and its manifest."""
+    folder = Path(folder)
+    manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
+    net = Seed002Net(Seed002Config.from_dict(manifest["config"]))
+    net.load_state_dict(torch.load(folder / "weights.pt", weights_only=True, map_location=device))
+    return net.to(device).eval(), manifest
+
+
+class NetworkIdentifier:
+    """Lost-in-space identification by seed 002's network plus catalogue verification (see the module docstring).
+
+    ``weights``: a run folder of ``starenv train`` (default: the shipped seed002_orion weights); ``top_k``: main-star
+    candidates tried; ``rolls``: roll hypotheses per candidate; ``radius_px``: pairing radius (px);
+    ``min_matches``: pairs needed; ``max_false``: largest accepted false-match probability (all hypotheses).
+    """
+
+    def __init__(self, weights: str | Path = DEFAULT_WEIGHTS, device: str = "cpu", top_k: int = 3, rolls: int = 3,
+                 radius_px: float = 2.0, min_matches: int = 5, max_false: float = 1e-3, threads: int | None = None):
+        if top_k < 1 or rolls < 1 or min_matches < 2:
+            raise ValueError(f"top_k, rolls >= 1 and min_matches >= 2 expected, got {top_k}, {rolls}, {min_matches}")
+        if not radius_px > 0 or not 0 < max_false < 1:
+            raise ValueError(f"radius_px > 0 and max_false in (0, 1) expected, got {radius_px}, {max_false}")
+        if threads is not None:
+            torch.set_num_threads(threads)
+        self.net, self.manifest = load_network(weights, device)
+        self.device = device
+        self.classes = np.asarray(self.manifest["classes_hip"], dtype=np.int64)
+        self.top_k, self.rolls, self.radius_px = top_k, rolls, radius_px
+        self.min_matches, self.max_false = min_matches, max_false
+        self.catalog: StarCatalog | None = None
+        self.last: dict = {}
+
+    def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
+        fov = math.degrees(cameras[0].fov[0])
+        trained = self.manifest.get("camera", {}).get("fov_deg")
+        if trained is not None and abs(fov - trained[0]) > 0.02 * trained[0]:
+            raise ValueError(f"NetworkIdentifier: head 0's field is {fov:.2f} deg, the network was trained on "
+                             f"{trained[0]:.2f} deg")
+        missing = np.setdiff1d(self.classes, catalog.hip)
+        if len(missing):
+            raise ValueError(f"NetworkIdentifier: {len(missing)} navigation stars (e.g. HIP {missing[0]}) are not in "
+                             "the catalogue handed over; give a catalogue down to the classes' magnitude")
+        self.catalog = catalog
+        self._rows = np.searchsorted(catalog.hip, self.classes)
+
+    @torch.no_grad()
+    def rank(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Navigation stars (HIP) ranked as the boresight star of a raw frame, and their softmax probabilities."""
+        x = torch.from_numpy(np.asarray(image, dtype=np.int32))[None]
+        prob = torch.softmax(self.net(x.to(self.device)), dim=1)[0].cpu().numpy()
+        order = np.argsort(-prob, kind="stable")
+        return self.classes[order], prob[order]
+
+    def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None = None,
+                 images: list[np.ndarray | None] | None = None) -> list[Stars]:
+        """Label all heads' detections (HIP; -1 unidentified) from head 0's frame; ``prior`` is not used."""
+        if self.catalog is None:
+            raise RuntimeError("call reset(cameras, catalog) before identify")
+        body, heads = body_vectors(stars, cameras)
+        none = labelled(stars, np.full(len(body), -1, dtype=np.int64))
+        self.last = {"ranked": None, "main": None, "verified": False}
+        if images is None or images[0] is None:
+            return none
+        ranked, prob = self.rank(images[0])
+        self.last["ranked"], self.last["prob"] = ranked[: self.top_k], prob[: self.top_k]
+        cam = cameras[0]
+        det = stars[0].xy
+        hypotheses = []
+        for hip in ranked[: self.top_k]:
+            unit = self.catalog.unit[np.searchsorted(self.catalog.hip, hip)]
+            ra, dec = unit_to_radec(unit)
+            cam0 = pointing(float(ra), float(dec), 0.0)
+            for roll in self._rolls(cam, cam0, det):
+                hypotheses.append((hip, cam.mounting.inv() * pointing(float(ra), float(dec), roll)))
+        trials = max(1, len(hypotheses))
+        for hip, attitude in hypotheses:
+            v = verify(attitude, body, heads, cameras, self.catalog, self.radius_px, given=1)
+            if v.matched >= self.min_matches and v.p_false * trials <= self.max_false:
+                self.last.update(main=int(hip), verified=True, attitude=v.attitude, p_false=v.p_false)
+                return labelled(stars, v.ids)
+        return none
+
+    def _rolls(self, cam: Camera, cam0: Rotation, det: np.ndarray) -> list[float]:
+        """The ``rolls`` most voted rolls (rad) putting catalogue stars about the boresight onto detections."""
+        if len(det) == 0:
+            return []
+        axis = cam0.inv().apply([0.0, 0.0, 1.0])
+        rows = self.catalog.cone(axis, cam.half_diagonal)
+        xy, front = cam.project(cam0.apply(self.catalog.unit[rows]))
+        xy = xy[front]
+        c = np.array([cam.cx, cam.cy])
+        rc, ac = np.hypot(*(xy - c).T), np.arctan2(*(xy - c).T[::-1])
+        rd, ad = np.hypot(*(det - c).T), np.arctan2(*(det - c).T[::-1])
+        i, j = np.nonzero(np.abs(rd[:, None] - rc[None, :]) <= self.radius_px)
+        keep = rd[i] > 3 * self.radius_px  # the azimuth of a star near the centre says little about the roll
+        i, j = i[keep], j[keep]
+        if not len(i):
+            return []
+        roll = np.mod(ac[j] - ad[i], 2 * np.pi)  # pointing(roll) turns the image by -roll
+        tol = self.radius_px / rd[i]
+        diff = np.abs(np.angle(np.exp(1j * (roll[:, None] - roll[None, :]))))
+        votes = (diff <= tol[None, :]).sum(axis=1)
+        chosen: list[float] = []
+        for k in np.argsort(-votes, kind="stable"):
+            if all(abs(np.angle(np.exp(1j * (roll[k] - r)))) > 2 * tol[k] for r in chosen):
+                chosen.append(float(roll[k]))
+            if len(chosen) == self.rolls:
+                break
+        return chosen

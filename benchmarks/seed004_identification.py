@@ -66,7 +66,7 @@ def run_methods(methods: dict, cameras, data) -> dict:
     results = {}
     for name, ident in methods.items():
         right, times, stage1, few, failed2, fixed3, stage_ms = 0, [], 0, 0, 0, 0, []
-        for attitude, cs, prior in data:
+        for _, cs, prior in data:
             stars = [StarMeasurements(x, f) for x, f in zip(cs.xy, cs.flux, strict=True)]
             t0 = time.perf_counter()
             out = ident.identify(stars, cameras, prior if name.startswith("tracking") else None)

@@ -108,7 +108,8 @@ def test_identifies_seeded_three_head_samples_without_wrong_ids(identifier, nav)
         cs = centroid_set(nav, CAMERAS, random_attitude(rng), 0.07, rng)
         out = identifier.identify([StarMeasurements(x, f) for x, f in zip(cs.xy, cs.flux, strict=True)], CAMERAS)
         ok = [np.count_nonzero(o.catalog_id == t) >= min(3, len(t)) for o, t in zip(out, cs.hip, strict=True)]
-        wrong += sum(np.count_nonzero((o.catalog_id >= 0) & (o.catalog_id != t)) for o, t in zip(out, cs.hip))
+        wrong += sum(np.count_nonzero((o.catalog_id >= 0) & (o.catalog_id != t))
+                     for o, t in zip(out, cs.hip, strict=True))
         right += all(ok)
     assert right >= 18 and wrong == 0
 

@@ -13,7 +13,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from starenv.bench import comparable, parse_bench, read_run, run_bench
+from starenv.bench.runner import comparable, read_run, run_bench
+from starenv.bench.spec import parse_bench
 
 BENCH = """
 name = "executors"

@@ -1,4 +1,4 @@
-"""Time ``starenv.sky.load_catalog`` cold, warm from the on-disk cache, and from the in-process cache.
+"""Time ``starenv.sim.sky.load_catalog`` cold, warm from the on-disk cache, and from the in-process cache.
 
 Run with ``python benchmarks/catalog_cache.py``.  A temporary cache folder is used, so the user's cache is untouched.
 """
@@ -11,7 +11,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from starenv import sky
+from starenv.sim import sky
 
 REPEATS = 5
 IN_PROCESS_CALLS = 10_000

@@ -7,11 +7,11 @@ equal on the three body axes; 5 deg/s smears stars over 30-35 px).  Timed side b
 
 * ``skimage.restoration.richardson_lucy`` on the full frame with the kernel of a star at the frame centre (float64,
   ``clip=False``), the baseline of the speed ratios;
-* :class:`~starenv.agents.deblur.RichardsonLucyDeblurrer` (the same full-frame algorithm, our FFT loop);
-* :class:`~starenv.agents.deblur.RoiDeblurrer` (patches around candidate streaks, each with its own kernel);
-* :class:`~starenv.agents.deblur.WienerDeblurrer` (full frame, one kernel).
+* :class:`~starenv.agents.restore.frame.RichardsonLucyDeblurrer` (the same full-frame algorithm, our FFT loop);
+* :class:`~starenv.agents.restore.frame.RoiDeblurrer` (patches around candidate streaks, each with its own kernel);
+* :class:`~starenv.agents.restore.frame.WienerDeblurrer` (full frame, one kernel).
 
-Every restored frame goes through the same :func:`~starenv.agents.deblur.resharpen` step (each trail replaced by
+Every restored frame goes through the same :func:`~starenv.agents.restore.frame.resharpen` step (each trail replaced by
 its still image) and the same ``CentroidDetector``; centroid errors are against the true mid-exposure positions
 ``xy_mid`` (matched one-to-one within 3 px), and "stars" counts detections matched to a true star.  The speed goal
 is RoiDeblurrer >= 10x faster than scikit-image at the same iteration count.
@@ -28,15 +28,12 @@ import gymnasium as gym
 import numpy as np
 
 import starenv  # noqa: F401  (registers the environments)
-from starenv.agents.base import GyroRecord, StepInput
-from starenv.agents.deblur import (
-    RichardsonLucyDeblurrer,
-    RoiDeblurrer,
-    WienerDeblurrer,
-    frame_kernel,
-    resharpen,
-)
+from starenv.agents.base import step_input
 from starenv.agents.detect import CentroidDetector
+from starenv.agents.restore.algorithms import resharpen
+from starenv.agents.restore.frame import RichardsonLucyDeblurrer, WienerDeblurrer
+from starenv.agents.restore.kernels import frame_kernel
+from starenv.agents.restore.roi import RoiDeblurrer
 from starenv.scoring import match
 
 
@@ -47,15 +44,7 @@ def smeared_frame(rate_dps: float, seed: int):
     env.reset(seed=seed)
     obs, _, _, _, info = env.step(None)
     base = env.unwrapped
-    n = int(obs["gyro"]["count"])
-    step = StepInput(
-        images=[obs["frames"][0]],
-        frame_valid=np.array([True]),
-        time_s=float(obs["time_s"]),
-        exposure_s=float(obs["exposure_s"]),
-        gyro=GyroRecord(obs["gyro"]["t"][:n], obs["gyro"]["rate"][:n], 1.0 / base.scenario.gyro.rate_hz),
-        cameras=base.cameras,
-    )
+    step = step_input(obs, base.sensor_info)
     return step, info["truth"]["stars"][0], base.scenario.heads[0].psf_sigma_px
 
 

@@ -43,11 +43,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import Stars
-from starenv.agents.identify import LostInSpaceIdentifier, TrackingIdentifier
-from starenv.frames import DEG, pointing
-from starenv.optics import Camera
-from starenv.sky import load_catalog
+from starenv.agents.base import StarMeasurements
+from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
+from starenv.agents.identify.tracking import TrackingIdentifier
+from starenv.sim.conventions import DEG, pointing
+from starenv.sim.optics import Camera
+from starenv.sim.sky import load_catalog
 
 REPO = Path(__file__).resolve().parent.parent
 VENV = REPO / ".peers-venv"
@@ -117,7 +118,7 @@ def split(sets: dict, name: str) -> list[np.ndarray]:
     return np.split(sets[name], np.cumsum(sets["sizes"])[:-1])
 
 
-def timed_rows(identifier, camera: Camera, stars: list[Stars], hips: list[np.ndarray], priors) -> list[list]:
+def timed_rows(identifier, camera: Camera, stars: list[StarMeasurements], hips: list[np.ndarray], priors) -> list[list]:
     """Per set [centroids, correct, wrong, solved, latency s] of ``identifier`` (one untimed call first)."""
     identifier.identify([stars[0]], [camera], priors[0])
     rows = []
@@ -140,7 +141,7 @@ def run_starenv(camera: Camera, sets: dict, mag_limit: float) -> dict:
         lis.reset([camera], catalog)  # a cold build: the user's cache is neither read nor written
         build_s = time.perf_counter() - start
         tracker.reset([camera], catalog)
-    stars = [Stars(xy, f) for xy, f in zip(split(sets, "xy"), split(sets, "flux"), strict=True)]
+    stars = [StarMeasurements(xy, f) for xy, f in zip(split(sets, "xy"), split(sets, "flux"), strict=True)]
     hips = split(sets, "hip")
     track = sets["track"]
     n = sets["track_stars"]
@@ -149,7 +150,7 @@ def run_starenv(camera: Camera, sets: dict, mag_limit: float) -> dict:
         "build_s": build_s,
         "database": f"{len(lis.database)} patterns of {len(lis.database.hip)} stars (Hp <= {mag_limit})",
         "lis": timed_rows(lis, camera, stars, hips, [None] * len(stars)),
-        "tracking": timed_rows(tracker, camera, [Stars(stars[i].xy[:n], stars[i].flux[:n]) for i in track],
+        "tracking": timed_rows(tracker, camera, [StarMeasurements(stars[i].xy[:n], stars[i].flux[:n]) for i in track],
                                [hips[i][:n] for i in track], priors),
     }
 

@@ -24,11 +24,11 @@ from starenv.scoring import flatten, summarize
 def run(scenario: str, overrides: dict, pipeline: Pipeline, frames: int, seed: int = 0):
     env = StarSensorEnv(scenario, overrides)
     obs, info = env.reset(seed=seed)
-    pipeline.reset(env)
+    pipeline.reset(env.unwrapped.sensor_info)
     records, heads = [], []
     for _ in range(frames):
         obs, _, _, truncated, info = env.step(pipeline(obs))
-        records.append(flatten(info["scores"], pipeline.latency_s))
+        records.append(flatten(info["scores"], pipeline.report.latency_s))
         if info["scores"]["attitude"] is not None:
             heads.append(info["scores"]["attitude"]["heads"][0])
         if truncated:
@@ -47,8 +47,8 @@ def main() -> None:
     for rate in (0.0, 2.0, 5.0, 10.0):
         per_axis = rate / math.sqrt(3.0)
         overrides = {"motion.rate_dps": [per_axis] * 3, "lost_after_steps": 10**6}
-        for name, identifier in (("lost-in-space", "starenv.agents.identify:LostInSpaceIdentifier"),
-                                 ("tracking", "starenv.agents.identify:TrackingIdentifier")):
+        for name, identifier in (("lost-in-space", "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier"),
+                                 ("tracking", "starenv.agents.identify.tracking:TrackingIdentifier")):
             s, _ = run("paper_002", overrides, Pipeline(identifier=identifier), args.frames)
             err = s.get("attitude_error_arcsec", {}).get("median", float("nan"))
             id_rate = s.get("id_rate", {}).get("mean", 0.0)

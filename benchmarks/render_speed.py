@@ -18,14 +18,14 @@ import time
 
 import numpy as np
 
-from starenv import render as render_module
-from starenv.detector import Detector, DetectorSpec
-from starenv.frames import DEG, pointing
-from starenv.motion import ConstantRate, Trajectory
-from starenv.optics import Camera
-from starenv.photometry import Photometry
-from starenv.render import StarRenderer
-from starenv.sky import load_catalog
+from starenv.sim import render as render_module
+from starenv.sim.conventions import DEG, pointing
+from starenv.sim.imager import Detector, DetectorSpec
+from starenv.sim.motion import ConstantRate, Trajectory
+from starenv.sim.optics import Camera
+from starenv.sim.photometry import Photometry
+from starenv.sim.render import StarRenderer
+from starenv.sim.sky import load_catalog
 
 
 def median_time(fn, repeats: int) -> float:

@@ -29,10 +29,10 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import GyroRecord, Stars, StepInput
+from starenv.agents.base import StarMeasurements, step_input
 from starenv.agents.predict import FirstOrderPredictor, QuaternionPredictor
 from starenv.env import StarSensorEnv
-from starenv.frames import ARCSEC
+from starenv.sim.conventions import ARCSEC
 
 START_FRAME, END_FRAME = 1, 1500
 EXTENDED_MARGIN_PX = 1500.0  # frame 1's stars end up to about 1200 px beyond the sensor's edge at frame 1500
@@ -41,15 +41,7 @@ NOISE_FREE = {"gyro.arw_deg_rthr": 0.0, "gyro.rrw_deg_hr_rthr": 0.0, "gyro.bias_
 PAPER = {"n": 13, "max_dx": 0.89, "max_dy": 0.50, "mean": 0.541}  # Table 1, frame 1500 (mean derived in the notes)
 
 
-def step_input(obs: dict, env: StarSensorEnv) -> StepInput:
-    """What a pipeline knows at one step, from the observation and the calibrated cameras."""
-    n = int(obs["gyro"]["count"])
-    gyro = GyroRecord(obs["gyro"]["t"][:n].copy(), obs["gyro"]["rate"][:n].copy(), 1.0 / env.scenario.gyro.rate_hz)
-    return StepInput(list(obs["frames"]), obs["frame_valid"].astype(bool), float(obs["time_s"]),
-                     float(obs["exposure_s"]), gyro, env.cameras)
-
-
-def errors(predicted: Stars, ids: np.ndarray, true_xy: np.ndarray) -> dict:
+def errors(predicted: StarMeasurements, ids: np.ndarray, true_xy: np.ndarray) -> dict:
     """n, max |dx|, max |dy| and mean Euclidean error (px) over the stars ``ids`` that ``predicted`` holds."""
     common, p, t = np.intersect1d(predicted.catalog_id, ids, return_indices=True)
     d = true_xy[t] - predicted.xy[p]
@@ -69,17 +61,17 @@ def run(gyro_overrides: dict) -> tuple[dict, int]:
     obs, info = env.reset()
     while info["truth"]["frame"] < START_FRAME:
         obs, _, _, _, info = env.step(None)
-    step = step_input(obs, env)
+    step = step_input(obs, env.sensor_info)
     first = info["truth"]["stars"][0]
     for predictor in predictors.values():
         predictor.reset(env.cameras, catalog)
         predictor.predict(step)
         predictor.update(Rotation.from_quat(info["truth"]["attitude"]),
-                         [Stars(first["xy_mid"], catalog_id=first["catalog_id"])], step.time_s)
+                         [StarMeasurements(first["xy_mid"], catalog_id=first["catalog_id"])], step.time_s)
     last_shared_frame = START_FRAME
     while info["truth"]["frame"] < END_FRAME:
         obs, _, _, _, info = env.step(None)
-        step = step_input(obs, env)
+        step = step_input(obs, env.sensor_info)
         predictions = {name: p.predict(step) for name, p in predictors.items()}
         stars = info["truth"]["stars"][0]
         in_view = true_camera.in_frame(stars["xy_mid"])

@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from starenv.agents.neural.agent import IterationNetDeblurrer
 from starenv.agents.pipeline import Pipeline
+from starenv.agents.restore.iteration.deblurrer import IterationNetDeblurrer
 from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
 

@@ -22,9 +22,10 @@ import time
 
 import numpy as np
 
-from starenv.agents.base import GyroRecord, StepInput
-from starenv.agents.curvature import CurvatureRLDeblurrer, window_centroids
-from starenv.agents.deblur import WienerDeblurrer, resharpen
+from starenv.agents.base import step_input
+from starenv.agents.restore.algorithms import resharpen
+from starenv.agents.restore.curvature import CurvatureRLDeblurrer, window_centroids
+from starenv.agents.restore.frame import WienerDeblurrer
 from starenv.env import StarSensorEnv
 
 HALF_WINDOW = 5
@@ -33,19 +34,6 @@ WIENER_NSR = 0.1
 WIENER = f"Wiener (nsr {WIENER_NSR:g})"
 RESTORED = "curvature + RL, Eq. 25 stop: restored image"
 RESHARPENED = "curvature + RL, Eq. 25 stop: deblur() output"
-
-
-def step_input(obs: dict, env) -> StepInput:
-    n = int(obs["gyro"]["count"])
-    base = env.unwrapped
-    return StepInput(
-        images=list(obs["frames"]),
-        frame_valid=np.asarray(obs["frame_valid"], dtype=bool),
-        time_s=float(obs["time_s"]),
-        exposure_s=float(obs["exposure_s"]),
-        gyro=GyroRecord(obs["gyro"]["t"][:n], obs["gyro"]["rate"][:n], 1.0 / base.scenario.gyro.rate_hz),
-        cameras=base.cameras,
-    )
 
 
 def centroid_errors(restored: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, int]:
@@ -85,7 +73,7 @@ def run(rates, frames: int, seed: int, min_electrons: float = 0.0, pointing=None
         for k in range(frames):
             if k:
                 obs, _, _, _, info = env.step(None)
-            step = step_input(obs, env)
+            step = step_input(obs, env.unwrapped.sensor_info)
             truth = info["truth"]["stars"][0]
             image = obs["frames"][0]
             xy_all = truth["xy_mid"]

@@ -37,13 +37,15 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from starenv.agents.detect import CentroidDetector  # noqa: E402
-from starenv.agents.grid import GridIdentifier  # noqa: E402
-from starenv.agents.identify import LostInSpaceIdentifier, TrackingIdentifier  # noqa: E402
-from starenv.agents.triangle import TriangleIdentifier  # noqa: E402
-from starenv.agents.verify import body_vectors, wahba  # noqa: E402
+from starenv.agents.identify.geometry import body_vectors  # noqa: E402
+from starenv.agents.identify.grid import GridIdentifier  # noqa: E402
+from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier  # noqa: E402
+from starenv.agents.identify.tracking import TrackingIdentifier  # noqa: E402
+from starenv.agents.identify.triangle import TriangleIdentifier  # noqa: E402
+from starenv.agents.identify.verify import wahba  # noqa: E402
 from starenv.datasets import load_spec, navigation_stars  # noqa: E402
 from starenv.datasets.samples import draw, render  # noqa: E402
-from starenv.sky import load_catalog  # noqa: E402
+from starenv.sim.sky import load_catalog  # noqa: E402
 
 SPEC = ROOT / "datasets" / "seed002_orion.toml"
 PAPER_PX_PER_OURS = 8.0  # the paper's 12 um pixels vs this sensor's 96 um

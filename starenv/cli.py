@@ -38,7 +38,7 @@ def cmd_scenarios(args) -> int:
 def cmd_render(args) -> int:
     import cv2
 
-    from starenv.sensor import StarSensor
+    from starenv.sim.sensor import StarSensor
     from starenv.view import mosaic, overlay
 
     sc = scenario_mod.load(args.scenario, _overrides(args.set))
@@ -153,8 +153,9 @@ def cmd_view(args) -> int:
 def cmd_bench(args) -> int:
     import importlib.util
 
-    from starenv.bench import load_bench, run_bench, write_report
-    from starenv.bench.runner import check_writable
+    from starenv.bench.report import write_report
+    from starenv.bench.runner import check_writable, run_bench
+    from starenv.bench.spec import load_bench
 
     for module in ("tqdm", "matplotlib"):
         if importlib.util.find_spec(module) is None:  # fail before the runs, not at the report after them

@@ -39,10 +39,9 @@ from gymnasium import spaces
 from scipy.spatial.transform import Rotation
 
 from starenv import scenario as scenario_mod
+from starenv.agents.base import MAX_STARS, SensorInfo
 from starenv.scoring import attitude_error, score_stars
-from starenv.sensor import Frame, StarSensor
-
-MAX_STARS = 256
+from starenv.sim.sensor import Frame, StarSensor
 
 
 class StarSensorEnv(gym.Env):
@@ -108,6 +107,12 @@ class StarSensorEnv(gym.Env):
     def cameras(self):
         """The calibrated camera model of each head, as the sensor knows it (may differ from the true optics)."""
         return [h.calibrated for h in self.scenario.heads]
+
+    @property
+    def sensor_info(self) -> SensorInfo:
+        """What a policy may know of the sensor before the first frame: calibrated cameras, gyro rate, epoch."""
+        sc = self.scenario
+        return SensorInfo(self.cameras, sc.gyro.rate_hz, sc.epoch)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is None and self._np_random is None:

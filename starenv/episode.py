@@ -15,8 +15,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from starenv.render import StarTruth
+from starenv.agents.base import Policy, StepReport
 from starenv.scoring import flatten, pool_restoration, score_restoration
+from starenv.sim.render import StarTruth
 
 
 @dataclass
@@ -55,17 +56,20 @@ class EpisodeResult:
     wall_s: float = 0.0
 
 
-def run_episode(env, pipeline=None, seed: int | None = None, steps: int | None = None,
+def run_episode(env, pipeline: Policy | None = None, seed: int | None = None, steps: int | None = None,
                 observers: tuple[Observer, ...] | list[Observer] = ()) -> EpisodeResult:
     """Run ``steps`` scored steps (default: the whole scenario) of ``env`` (a ``StarSensorEnv``) from ``seed``
     (default: the scenario's) with ``pipeline`` (None: every step unavailable).  Observers are closed even when a
     step raises, with the exception, so a recording ends readable; the exception propagates."""
+    if pipeline is not None and not isinstance(pipeline, Policy):
+        raise TypeError(f"pipeline: {type(pipeline).__name__} does not implement the Policy protocol (report, reset, "
+                        "__call__, describe; see starenv.agents.base.Policy)")
     sc = env.unwrapped.scenario
     seed = sc.seed if seed is None else int(seed)
     steps = sc.n_steps - 1 if steps is None else int(steps)
     obs, info = env.reset(seed=seed)
     if pipeline is not None:
-        pipeline.reset(env)
+        pipeline.reset(env.unwrapped.sensor_info)
     result = EpisodeResult(dropped=np.zeros(len(sc.heads), dtype=int))
     started: list[Observer] = []
     error: BaseException | None = None
@@ -78,14 +82,14 @@ def run_episode(env, pipeline=None, seed: int | None = None, steps: int | None =
             truth = info["truth"]
             result.dropped += np.array(truth["dropped"], dtype=int)
             action = pipeline(obs) if pipeline is not None else None
-            latency = dict(pipeline.latency_s) if pipeline is not None else {}
-            source = pipeline.source if pipeline is not None else "none"
-            restoration = _restoration_scores(env, pipeline, truth) if pipeline is not None else {}
+            report = pipeline.report if pipeline is not None else StepReport()
+            latency = dict(report.latency_s)
+            restoration = _restoration_scores(env, report, truth)
             next_obs, _, terminated, truncated, info = env.step(action)
             record = flatten(info["scores"], latency)
             record.update(restoration)
             result.records.append(record)
-            log = StepLog(k, obs, truth, action, info["scores"], record, source, latency, pipeline)
+            log = StepLog(k, obs, truth, action, info["scores"], record, report.source, latency, pipeline)
             for o in started:
                 o.step(log)
             obs = next_obs
@@ -103,20 +107,19 @@ def run_episode(env, pipeline=None, seed: int | None = None, steps: int | None =
     return result
 
 
-def _restoration_scores(env, pipeline, truth: dict) -> dict[str, float | None]:
-    """``restoration_*`` record entries of the frame the pipeline just processed (empty without a deblurrer): each
-    restored head scored (:func:`~starenv.scoring.score_restoration`) with the pipeline's own detector against the
+def _restoration_scores(env, report: StepReport, truth: dict) -> dict[str, float | None]:
+    """``restoration_*`` record entries of the frame the policy just processed (empty without a restoration): each
+    restored head scored (:func:`~starenv.scoring.score_restoration`) with the policy's own detector against the
     frame's truth and its still, noise-free reference, pooled over heads."""
-    agents = getattr(pipeline, "agents", None)  # any policy with latency_s and source can drive an episode
-    if not isinstance(agents, dict) or agents.get("deblurrer") is None:
+    if report.detector is None:
         return {}
     base = env.unwrapped
     per_head = []
-    for h, pair in enumerate(pipeline.restorations):
-        if pair is None:
+    for h, restoration in enumerate(report.restorations):
+        if restoration is None:
             continue
         stars = StarTruth(**{k: np.asarray(v) for k, v in truth["stars"][h].items()})
         clean = base.sensor.still_frame(h, stars)
-        per_head.append(score_restoration(stars, pair[0], pair[1], agents["detector"], base.cameras[h],
-                                          clean, pipeline.deblur_info[h]))
+        per_head.append(score_restoration(stars, restoration.raw, restoration.restored, report.detector,
+                                          base.cameras[h], clean, restoration.info))
     return pool_restoration(per_head)

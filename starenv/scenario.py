@@ -24,7 +24,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,12 +31,21 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import AGENT_ROLES
-from starenv.detector import DetectorSpec
-from starenv.drops import DropModel
-from starenv.frames import ARCSEC, DEG, pointing
-from starenv.gyro import GyroSpec
-from starenv.motion import (
+from starenv.config import (
+    REQUIRED,
+    ConfigError,
+    Table,
+    apply_override,
+    dataclass_from_table,
+    dump_toml,
+    is_number,
+    parse_toml,
+)
+from starenv.sim.conventions import ARCSEC, DEG, pointing
+from starenv.sim.drops import DropModel
+from starenv.sim.gyro import GyroSpec
+from starenv.sim.imager import DetectorSpec
+from starenv.sim.motion import (
     ConstantRate,
     LeoNadir,
     Motion,
@@ -48,158 +56,21 @@ from starenv.motion import (
     TorqueFree,
     Trajectory,
 )
-from starenv.optics import BrownConrady, Camera, Distortion, LegendreField, NoDistortion, RadialXY
-from starenv.photometry import Photometry, StrayLight
+from starenv.sim.optics import BrownConrady, Camera, Distortion, LegendreField, NoDistortion, RadialXY
+from starenv.sim.photometry import Photometry, StrayLight
+from starenv.sim.sensor import HeadSpec
 
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
-_REQUIRED = object()
 
 
-class ScenarioError(ValueError):
+class ScenarioError(ConfigError):
     """A scenario file (or override) that does not describe a valid mission."""
-
-
-def _finite(x: float) -> bool:
-    """``math.isfinite`` that calls an int too large for a float non-finite instead of raising OverflowError."""
-    try:
-        return math.isfinite(x)
-    except OverflowError:
-        return False
-
-
-def _is_number(x: Any) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and _finite(x)
-
-
-class _Table:
-    """Typed access to one TOML table that remembers which keys were read, to refuse the rest."""
-
-    def __init__(self, data: Any, path: str, source: str):
-        self.path, self.source = path, source
-        if not isinstance(data, dict):
-            self.fail("", "a table", data)
-        self.data, self.used = data, set()
-
-    def where(self, key: str) -> str:
-        return f"{self.path}.{key}" if self.path and key else (self.path or key or "(top level)")
-
-    def fail(self, key: str, expected: str, got: Any = _REQUIRED) -> None:
-        found = "it is missing" if got is _REQUIRED else f"got {got!r}"
-        raise ScenarioError(f"{self.source}: {self.where(key)}: expected {expected}, {found}")
-
-    def raw(self, key: str, default: Any, expected: str) -> Any:
-        self.used.add(key)
-        if key not in self.data:
-            if default is _REQUIRED:
-                self.fail(key, expected)
-            return default
-        return self.data[key]
-
-    def number(self, key, default=_REQUIRED, low=-math.inf, high=math.inf, *, low_open=False, integer=False):
-        kind = "an integer" if integer else "a number"
-        lb, hb = ("(" if low_open else "["), "]"
-        expected = f"{kind} in {lb}{low:g}, {high:g}{hb}"
-        v = self.raw(key, default, expected)
-        if v is None:
-            return None
-        ok_type = isinstance(v, int) if integer else isinstance(v, int | float)
-        if isinstance(v, bool) or not ok_type or not _finite(v):
-            self.fail(key, expected, v)
-        if (v <= low if low_open else v < low) or v > high:
-            self.fail(key, expected, v)
-        return v
-
-    def string(self, key, default=_REQUIRED, choices: tuple[str, ...] | None = None) -> str:
-        expected = f"one of {', '.join(repr(c) for c in choices)}" if choices else "a string"
-        v = self.raw(key, default, expected)
-        if not isinstance(v, str) or (choices and v not in choices):
-            self.fail(key, expected, v)
-        return v
-
-    def vector(self, key, n: int | None, default=_REQUIRED) -> tuple[float, ...] | None:
-        """A list of ``n`` finite numbers (any length when ``n`` is None)."""
-        expected = f"a list of {n} numbers" if n else "a non-empty list of numbers"
-        v = self.raw(key, default, expected)
-        if v is None:
-            return None
-        if (
-            not isinstance(v, list | tuple)
-            or (len(v) != n if n else not v)
-            or not all(_is_number(x) for x in v)
-        ):
-            self.fail(key, expected, v)
-        return tuple(float(x) for x in v)
-
-    def matrix(self, key, default=_REQUIRED) -> np.ndarray | None:
-        expected = "a 3x3 matrix (a list of 3 lists of 3 numbers)"
-        v = self.raw(key, default, expected)
-        if v is None:
-            return None
-        try:
-            m = np.array(v, dtype=np.float64)
-        except (TypeError, ValueError, OverflowError):
-            m = None
-        if m is None or m.shape != (3, 3) or not np.all(np.isfinite(m)):
-            self.fail(key, expected, v)
-        return m
-
-    def table(self, key, required: bool = False) -> _Table | None:
-        v = self.raw(key, _REQUIRED if required else None, "a table")
-        return None if v is None else _Table(v, self.where(key), self.source)
-
-    def tables(self, key) -> list[_Table]:
-        v = self.raw(key, _REQUIRED, "an array of tables ([[...]])")
-        if not isinstance(v, list) or not v:
-            self.fail(key, "a non-empty array of tables ([[...]])", v)
-        return [_Table(item, f"{self.where(key)}.{i}", self.source) for i, item in enumerate(v)]
-
-    def finish(self) -> None:
-        extra = sorted(set(self.data) - self.used)
-        if extra:
-            allowed = ", ".join(sorted(self.used)) or "none"
-            raise ScenarioError(f"{self.source}: {self.where(extra[0])}: unknown key (allowed here: {allowed})")
-
-    def build(self, what: str, fn, *args, **kwargs):
-        """Call a model constructor, turning its ValueError into a ScenarioError located in this table."""
-        try:
-            return fn(*args, **kwargs)
-        except ScenarioError:
-            raise
-        except ValueError as exc:
-            raise ScenarioError(f"{self.source}: {self.path or what}: {exc}") from exc
-
-
-def _dataclass_from_table(tbl: _Table | None, cls):
-    """Fill a frozen dataclass of numbers / number vectors from a table whose keys are its field names."""
-    if tbl is None:
-        return cls()
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if not f.init:
-            continue
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-        if isinstance(default, tuple) and default and isinstance(default[0], tuple):
-            value = tbl.matrix(f.name, None)
-            value = None if value is None else tuple(map(tuple, value.tolist()))
-        elif isinstance(default, tuple):
-            value = tbl.vector(f.name, len(default), None)
-        else:
-            value = tbl.number(f.name, None, integer=isinstance(default, int) and not isinstance(default, bool))
-        if value is not None:
-            kwargs[f.name] = value
-    tbl.finish()
-    try:
-        return cls(**kwargs)
-    except ValueError as exc:  # the model's checks name the field first: "adc_bits must be ..."
-        word = str(exc).split(" ", 1)[0].rsplit(".", 1)[-1]
-        key = word if word in {f.name for f in dataclasses.fields(cls)} else ""
-        raise ScenarioError(f"{tbl.source}: {tbl.where(key)}: {exc}") from exc
 
 
 DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre")
 
 
-def _distortion(tbl: _Table | None) -> Distortion:
+def _distortion(tbl: Table | None) -> Distortion:
     if tbl is None:
         return NoDistortion()
     kind = tbl.string("kind", choices=DISTORTION_KINDS)
@@ -218,7 +89,7 @@ def _distortion(tbl: _Table | None) -> Distortion:
     return model
 
 
-def _mounting(tbl: _Table) -> Rotation:
+def _mounting(tbl: Table) -> Rotation:
     """Body -> camera rotation from ``mounting_matrix`` (rows: camera axes in body) or ``mounting_euler_deg``."""
     matrix = tbl.matrix("mounting_matrix", None)
     euler = tbl.vector("mounting_euler_deg", 3, None)
@@ -233,24 +104,7 @@ def _mounting(tbl: _Table) -> Rotation:
     return Rotation.identity()
 
 
-@dataclass
-class HeadSpec:
-    """One camera head: the true camera, what the sensor believes it is, PSF, throughput, detector, stray light."""
-
-    name: str
-    camera: Camera
-    calibrated: Camera
-    photometry: Photometry
-    detector: DetectorSpec
-    stray_light: StrayLight
-
-    @property
-    def psf_sigma_px(self) -> float:
-        """The true spot's Gaussian sigma (px); the calibrated camera carries the same value."""
-        return self.camera.psf_sigma_px
-
-
-def _head(tbl: _Table, index: int) -> HeadSpec:
+def _head(tbl: Table, index: int) -> HeadSpec:
     name = tbl.string("name", f"head{index}")
     focal_mm = tbl.number("focal_length_mm", low=0.0, high=2000.0, low_open=True)
     pitch_um = tbl.number("pixel_pitch_um", low=0.0, high=1000.0, low_open=True)
@@ -268,15 +122,15 @@ def _head(tbl: _Table, index: int) -> HeadSpec:
         "heads", Camera.from_focal_length, focal_mm * 1e-3, pitch_um * 1e-6, width, height, f_number,
         distortion=distortion, mounting=mounting, psf_sigma_px=psf_sigma, **pp,
     )
-    detector = _dataclass_from_table(tbl.table("detector"), DetectorSpec)
-    stray = _dataclass_from_table(tbl.table("stray_light"), StrayLight)
+    detector = dataclass_from_table(tbl.table("detector"), DetectorSpec)
+    stray = dataclass_from_table(tbl.table("stray_light"), StrayLight)
     calibrated = _calibration(tbl.table("calibration"), camera)
     tbl.finish()
     photometry = tbl.build("heads", Photometry, camera.aperture_m, transmission, qe)
     return HeadSpec(name, camera, calibrated, photometry, detector, stray)
 
 
-def _calibration(tbl: _Table | None, camera: Camera) -> Camera:
+def _calibration(tbl: Table | None, camera: Camera) -> Camera:
     """The camera model the sensor knows: the truth with any of focal length, principal point, distortion or
     mounting replaced by the calibration's (imperfect) values."""
     if tbl is None:
@@ -301,14 +155,14 @@ def _calibration(tbl: _Table | None, camera: Camera) -> Camera:
 MOTION_KINDS = ("constant_rate", "slew", "tumble", "coning", "leo_nadir", "sequence")
 
 
-def _initial_pointing(tbl: _Table) -> tuple[float, float, float]:
+def _initial_pointing(tbl: Table) -> tuple[float, float, float]:
     ra = tbl.number("initial_ra_deg", low=-360.0, high=360.0)
     dec = tbl.number("initial_dec_deg", low=-90.0, high=90.0)
     roll = tbl.number("initial_roll_deg", 0.0, low=-360.0, high=360.0)
     return ra, dec, roll
 
 
-def _motion_kind(tbl: _Table, kind: str, head0: Camera, initial: Rotation | None) -> Motion:
+def _motion_kind(tbl: Table, kind: str, head0: Camera, initial: Rotation | None) -> Motion:
     """One motion of the given kind from its table (``initial`` = inertial -> body at its start, for slews)."""
     if kind == "constant_rate":
         rate = tbl.vector("rate_dps", 3)
@@ -325,9 +179,9 @@ def _motion_kind(tbl: _Table, kind: str, head0: Camera, initial: Rotation | None
         target_body = head0.mounting.inv() * target
         return tbl.build("motion", Slew.between, initial, target_body, max_rate, max_accel, start)
     if kind == "tumble":
-        inertia = tbl.raw("inertia_kgm2", _REQUIRED, "3 principal moments or a 3x3 tensor, kg m^2")
+        inertia = tbl.raw("inertia_kgm2", REQUIRED, "3 principal moments or a 3x3 tensor, kg m^2")
         rows = inertia if isinstance(inertia, list) and all(isinstance(r, list) for r in inertia) else [inertia]
-        ok = all(isinstance(r, list) and r and all(_is_number(x) for x in r) for r in rows)
+        ok = all(isinstance(r, list) and r and all(is_number(x) for x in r) for r in rows)
         arr = np.array(inertia, dtype=np.float64) if ok and len({len(r) for r in rows}) == 1 else None
         if arr is None or arr.shape not in ((3,), (3, 3)):
             tbl.fail("inertia_kgm2", "3 principal moments or a 3x3 tensor, kg m^2", inertia)
@@ -358,7 +212,7 @@ def _motion_kind(tbl: _Table, kind: str, head0: Camera, initial: Rotation | None
     return tbl.build("motion", Sequence, segments)
 
 
-def _trajectory(tbl: _Table, head0: Camera) -> Trajectory:
+def _trajectory(tbl: Table, head0: Camera) -> Trajectory:
     kind = tbl.string("kind", choices=MOTION_KINDS)
     if kind == "leo_nadir":
         motion = _motion_kind(tbl, kind, head0, None)
@@ -378,40 +232,55 @@ def _trajectory(tbl: _Table, head0: Camera) -> Trajectory:
     return Trajectory(motion, initial)
 
 
-@dataclass
+AGENT_ROLES = ("predictor", "deblurrer", "detector", "corrector", "identifier", "solver")
+
+
+@dataclass(frozen=True)
 class PipelineSpec:
-    """Agents a scenario asks for: role -> ``"module:Class"`` or None (empty); roles not named keep the defaults."""
+    """Agents a scenario (or a bench pipeline) asks for: role -> ``"module:Class"`` or None (empty), constructor
+    options per role, the onboard catalogue's magnitude limit; roles not named keep the defaults."""
 
     agents: dict[str, str | None] = field(default_factory=dict)
     options: dict[str, dict[str, Any]] = field(default_factory=dict)
     catalog_mag_limit: float | None = None
 
+    def replaced_by(self, other: PipelineSpec) -> PipelineSpec:
+        """This pipeline with ``other`` taking precedence: its agents, its options merged role by role (its keys
+        win), its catalogue limit where it sets one.  The one place pipeline choices are merged."""
+        options = {role: dict(opts) for role, opts in self.options.items()}
+        for role, opts in other.options.items():
+            options[role] = {**options.get(role, {}), **opts}
+        limit = self.catalog_mag_limit if other.catalog_mag_limit is None else other.catalog_mag_limit
+        return PipelineSpec({**self.agents, **other.agents}, options, limit)
 
-def _pipeline(tbl: _Table | None) -> PipelineSpec:
-    spec = PipelineSpec()
+
+def parse_pipeline(tbl: Table | None) -> PipelineSpec:
+    """A ``[pipeline]`` table: ``role = "module:Class" | "none"``, ``catalog_mag_limit``, ``[options.ROLE]``."""
     if tbl is None:
-        return spec
+        return PipelineSpec()
+    agents: dict[str, str | None] = {}
     for role in AGENT_ROLES:
         if role in tbl.data:
             value = tbl.string(role)
             module, sep, cls = value.partition(":")
             if value.lower() == "none":
-                spec.agents[role] = None
+                agents[role] = None
             elif not (sep and module and cls):
                 tbl.fail(role, "'module:Class' (e.g. 'starenv.agents.solve:SvdSolver') or 'none'", value)
             else:
-                spec.agents[role] = value
-    spec.catalog_mag_limit = tbl.number("catalog_mag_limit", None, low=-2.0, high=14.0)
-    options = tbl.table("options")
-    if options is not None:
+                agents[role] = value
+    limit = tbl.number("catalog_mag_limit", None, low=-2.0, high=14.0)
+    options: dict[str, dict[str, Any]] = {}
+    options_tbl = tbl.table("options")
+    if options_tbl is not None:
         for role in AGENT_ROLES:
-            role_options = options.table(role)
+            role_options = options_tbl.table(role)
             if role_options is not None:
-                spec.options[role] = dict(role_options.data)
+                options[role] = dict(role_options.data)
                 role_options.used.update(role_options.data)
-        options.finish()
+        options_tbl.finish()
     tbl.finish()
-    return spec
+    return PipelineSpec(agents, options, limit)
 
 
 @dataclass
@@ -448,32 +317,7 @@ class Scenario:
 
     def to_toml(self) -> str:
         """The scenario (overrides applied) as TOML text that loads back to the same mission."""
-        return _dump_toml(self.data)
-
-
-def _apply_override(data: dict, dotted: str, value: Any, source: str) -> None:
-    parts = dotted.split(".")
-    if not dotted or not all(parts):
-        raise ScenarioError(f"{source}: override {dotted!r}: expected a dotted key path like 'motion.rate_dps'")
-    node: Any = data
-    for i, part in enumerate(parts):
-        last = i == len(parts) - 1
-        if isinstance(node, list):
-            if not (part.isascii() and part.isdigit()) or int(part) >= len(node):
-                where = ".".join(parts[:i])
-                raise ScenarioError(f"{source}: override {dotted!r}: {where} has {len(node)} items, no item {part!r}")
-            if last:
-                node[int(part)] = value
-            else:
-                node = node[int(part)]
-        elif isinstance(node, dict):
-            if last:
-                node[part] = value
-            else:
-                node = node.setdefault(part, {})
-        else:
-            where = ".".join(parts[:i])
-            raise ScenarioError(f"{source}: override {dotted!r}: {where} is not a table")
+        return dump_toml(self.data)
 
 
 def resolve(scenario: str | Path) -> Path:
@@ -501,16 +345,17 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
         path = resolve(scenario)
         source = str(path)
         try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as exc:
             raise ScenarioError(f"{source}: not valid TOML: {exc}") from exc
+        data = parse_toml(text, source, ScenarioError)
         data.setdefault("name", path.stem)
     if overrides:
         if not isinstance(overrides, dict):
             raise ScenarioError(f"{source}: overrides must be a dict of dotted key paths, got {overrides!r}")
         for key, value in overrides.items():
-            _apply_override(data, str(key), value, source)
-    top = _Table(data, "", source)
+            apply_override(data, str(key), value, source, ScenarioError)
+    top = Table(data, "", source, ScenarioError)
     name = top.string("name", "scenario")
     description = top.string("description")
     seed = top.number("seed", 0, low=0, high=2**63 - 1, integer=True)
@@ -531,44 +376,11 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
                 f"<= the frame period {1.0 / frame_rate:g} s"
             )
     trajectory = _trajectory(top.table("motion", required=True), heads[0].camera)
-    gyro = _dataclass_from_table(top.table("gyro"), GyroSpec)
-    drops = _dataclass_from_table(top.table("drops"), DropModel)
-    pipeline = _pipeline(top.table("pipeline"))
+    gyro = dataclass_from_table(top.table("gyro"), GyroSpec)
+    drops = dataclass_from_table(top.table("drops"), DropModel)
+    pipeline = parse_pipeline(top.table("pipeline"))
     top.finish()
     return Scenario(
         name, description, seed, duration, frame_rate, exposure, mag_limit, epoch, sky, lost_after, avail,
         trajectory, gyro, drops, heads, pipeline, source, data,
     )
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | float):
-        return repr(float(v) if isinstance(v, float) else int(v))
-    if isinstance(v, str):
-        return '"' + "".join(
-            "\\" + c if c in '"\\' else f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F else c for c in v
-        ) + '"'
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def _dump_toml(data: dict, prefix: str = "") -> str:
-    """Minimal TOML writer for scenario dicts (scalars, arrays, tables, arrays of tables)."""
-    lines, children = [], []
-    for key, value in data.items():
-        if isinstance(value, dict):
-            children.append((key, value, False))
-        elif isinstance(value, list) and value and all(isinstance(x, dict) for x in value):
-            children.append((key, value, True))
-        else:
-            lines.append(f"{key} = {_toml_value(value)}")
-    out = "\n".join(lines)
-    for key, value, is_array in children:
-        name = f"{prefix}{key}"
-        for item in value if is_array else [value]:
-            header = f"[[{name}]]" if is_array else f"[{name}]"
-            out += f"\n\n{header}\n" + _dump_toml(item, f"{name}.")
-    return out.strip("\n") + "\n" if not prefix else out.strip("\n")

@@ -24,8 +24,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
-from starenv.frames import ARCSEC_PER_RAD
-from starenv.render import StarTruth
+from starenv.sim.conventions import ARCSEC_PER_RAD
+from starenv.sim.render import StarTruth
 
 CENTROID_GATE_PX = 3.0
 SOLVED_MIN_CORRECT = 3
@@ -182,7 +182,7 @@ def score_restoration(truth: StarTruth, blurred: np.ndarray, restored: np.ndarra
     truth is taken), while the blurred image's centre of light is the trail centroid; the two differ where the motion
     is not uniform (arcs, acceleration).  ``stars_before`` / ``stars_after``: detections matched one-to-one to a true
     star within ``gate_px``.  ``psnr_gain_db``: PSNR of the restored minus that of the blurred image against
-    ``clean`` (the still, noise-free frame of :meth:`starenv.sensor.StarSensor.still_frame`; None: not scored).
+    ``clean`` (the still, noise-free frame of :meth:`starenv.sim.sensor.StarSensor.still_frame`; None: not scored).
     ``iterations``: ``info["iterations"]`` of the deblurrer (None when not given).
     """
     scores = {}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from starenv.render import StarTruth
+from starenv.sim.render import StarTruth
 
 TRUTH_COLOUR = (80, 220, 80)  # RGB
 

@@ -16,10 +16,9 @@ from hypothesis import strategies as st
 
 from starenv import scenario as scenario_mod
 from starenv.agents.pipeline import Pipeline
-from starenv.bench import BenchError, comparable, load_bench, parse_bench, read_run, run_bench, write_report
-from starenv.bench.report import aggregate, markdown_tables
-from starenv.bench.runner import RunResult, run_file, write_run
-from starenv.bench.spec import BENCH_DIR, Sweep, resolve_bench
+from starenv.bench.report import aggregate, markdown_tables, write_report
+from starenv.bench.runner import RunResult, comparable, read_run, run_bench, run_file, write_run
+from starenv.bench.spec import BENCH_DIR, BenchError, Sweep, load_bench, parse_bench, resolve_bench
 from starenv.cli import main
 from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
@@ -127,7 +126,7 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
         own = Pipeline.for_scenario(sc).describe()
         assert runs["tracking"].pipeline.build(sc).describe() == own
         lis = runs["lost_in_space"].pipeline.build(sc).describe()
-        assert lis == {**own, "identifier": "starenv.agents.identify:LostInSpaceIdentifier"}
+        assert lis == {**own, "identifier": "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier"}
     swept = [r for r in bench.runs if r.sweep_key == "motion.rate_dps"]
     assert {r.scenario for r in swept} == {"paper_000", "paper_002"}
     rates = sorted({r.sweep_value for r in swept if r.scenario == "paper_002"})
@@ -135,8 +134,9 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
     assert all(math.hypot(*r.overrides["motion.rate_dps"]) == pytest.approx(r.sweep_value) for r in swept)
     # every deblurrer of the seed papers runs, each beside a blurred baseline on the same scenario
     deblurrers = {r.pipeline.build(scenario_mod.load(r.scenario)).describe()["deblurrer"] for r in bench.runs}
-    assert {"starenv.agents.neural.agent:IterationNetDeblurrer", "starenv.agents.curvature:CurvatureRLDeblurrer",
-            "starenv.agents.deblur:WienerDeblurrer", "starenv.agents.deblur:RoiDeblurrer"} < deblurrers
+    assert {"starenv.agents.restore.iteration.deblurrer:IterationNetDeblurrer",
+            "starenv.agents.restore.curvature:CurvatureRLDeblurrer", "starenv.agents.restore.frame:WienerDeblurrer",
+            "starenv.agents.restore.roi:RoiDeblurrer"} < deblurrers
 
 
 USES_X = SMALL.replace('"lost_in_space"]', '"x"]')

@@ -7,21 +7,20 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy import ndimage
 
-from starenv.agents.base import GyroRecord, StepInput
-from starenv.agents.curvature import (
-    CentroidStop,
-    CurvatureRLDeblurrer,
+from starenv.agents.base import StepInput
+from starenv.agents.restore.algorithms import (
     curvature_energy,
     curvature_filter,
     gating_energy,
     nearest_plane_step,
     plane_distances,
-    window_centroids,
+    resharpen,
+    richardson_lucy,
 )
-from starenv.agents.deblur import resharpen
-from starenv.optics import Camera
-from starenv.psf import path_kernel, star_paths
-from starenv.restoration import richardson_lucy
+from starenv.agents.restore.curvature import CentroidStop, CurvatureRLDeblurrer, window_centroids
+from starenv.agents.restore.kernels import path_kernel, star_paths
+from starenv.sim.gyro import GyroSamples
+from starenv.sim.optics import Camera
 
 images = arrays(np.float64, st.tuples(st.integers(3, 14), st.integers(3, 14)),
                 elements=st.floats(0.0, 4000.0, allow_nan=False, allow_infinity=False))
@@ -193,7 +192,7 @@ def test_deblurrer_restores_a_smeared_star_to_its_mid_exposure_position():
     rate = np.radians([2.0, 2.0, 0.0])  # 16 px trail in each axis over 60 ms
     exposure, t_mid = 0.06, 1.0
     ts = np.arange(0.9, 1.04, 0.005)
-    gyro = GyroRecord(ts, np.tile(rate, (len(ts), 1)), 0.005)
+    gyro = GyroSamples(ts, np.tile(rate, (len(ts), 1)), 0.005)
     stars = np.array([[60.3, 50.6], [110.7, 80.2]])
     paths = star_paths(camera, gyro, t_mid - exposure / 2, t_mid + exposure / 2, stars)
     img = np.full((120, 160), 100.0)

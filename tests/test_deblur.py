@@ -7,15 +7,17 @@ import numpy as np
 import pytest
 
 import starenv  # noqa: F401  (registers the environments)
-from starenv.agents.base import GyroRecord, StepInput
-from starenv.agents.curvature import CurvatureRLDeblurrer
-from starenv.agents.deblur import RichardsonLucyDeblurrer, RoiDeblurrer, WienerDeblurrer, resharpen
+from starenv.agents.base import step_input
 from starenv.agents.detect import CentroidDetector
-from starenv.agents.neural.agent import IterationNetDeblurrer
 from starenv.agents.pipeline import Pipeline
+from starenv.agents.restore.algorithms import resharpen
+from starenv.agents.restore.curvature import CurvatureRLDeblurrer
+from starenv.agents.restore.frame import RichardsonLucyDeblurrer, WienerDeblurrer
+from starenv.agents.restore.iteration.deblurrer import IterationNetDeblurrer
+from starenv.agents.restore.roi import RoiDeblurrer
 from starenv.episode import run_episode
-from starenv.render import StarTruth
 from starenv.scoring import psnr_db, score_restoration, score_stars
+from starenv.sim.render import StarTruth
 
 
 def smeared(scenario: str, rate_dps: float, seed: int = 0, **overrides):
@@ -26,10 +28,7 @@ def smeared(scenario: str, rate_dps: float, seed: int = 0, **overrides):
     obs, _, _, _, info = env.step(None)
     base = env.unwrapped
     cam = base.cameras[0]
-    n = int(obs["gyro"]["count"])
-    step = StepInput([obs["frames"][0]], np.array([True]), float(obs["time_s"]), float(obs["exposure_s"]),
-                     GyroRecord(obs["gyro"]["t"][:n], obs["gyro"]["rate"][:n], 1.0 / base.scenario.gyro.rate_hz),
-                     base.cameras)
+    step = step_input(obs, base.sensor_info)
     truth = StarTruth(**{k: np.asarray(v) for k, v in info["truth"]["stars"][0].items()})
     return base, step, truth, obs["frames"][0][: cam.height, : cam.width]
 
@@ -185,10 +184,11 @@ def test_seed_restorers_keep_the_detectors_precision_and_recall(paper000, agent_
 
 def test_pipeline_keeps_restorations_and_the_episode_records_them():
     env = gym.make("StarEnv/Paper000-v0")
-    pipe = Pipeline.for_scenario(env.unwrapped.scenario, agents={"deblurrer": "starenv.agents.deblur:RoiDeblurrer"},
+    pipe = Pipeline.for_scenario(env.unwrapped.scenario,
+                                 agents={"deblurrer": "starenv.agents.restore.roi:RoiDeblurrer"},
                                  options={"deblurrer": {"iterations": 5, "psf_sigma_px": 0.8}})
     result = run_episode(env, pipe, seed=0, steps=2)
-    raw, restored = pipe.restorations[0]
+    raw, restored = pipe.report.restorations[0].raw, pipe.report.restorations[0].restored
     assert raw.dtype == np.uint16 and restored.dtype == np.float64 and raw.shape == restored.shape
     rec = result.records[-1]
     assert rec["restoration_iterations"] == 5.0

@@ -12,14 +12,14 @@ from scipy.spatial.distance import cdist
 from starenv import scenario
 from starenv.agents.base import StarDetector
 from starenv.agents.detect import CentroidDetector
-from starenv.detector import Detector, DetectorSpec
-from starenv.frames import pointing
-from starenv.motion import ConstantRate, Trajectory
-from starenv.optics import Camera
-from starenv.photometry import Photometry
-from starenv.render import StarRenderer, StarSignal
-from starenv.sensor import StarSensor
-from starenv.sky import StarCatalog
+from starenv.sim.conventions import pointing
+from starenv.sim.imager import Detector, DetectorSpec
+from starenv.sim.motion import ConstantRate, Trajectory
+from starenv.sim.optics import Camera
+from starenv.sim.photometry import Photometry
+from starenv.sim.render import StarRenderer, StarSignal
+from starenv.sim.sensor import StarSensor
+from starenv.sim.sky import StarCatalog
 
 # Seed 000's camera: f = 49 mm, 20 um pixels, here 512 x 512; 10 ms exposure, PSF sigma 0.8 px.
 CAM = Camera.from_focal_length(49e-3, 20e-6, 512, 512)

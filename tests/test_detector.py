@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from starenv.detector import Detector, DetectorSpec
-from starenv.drops import DropChannel, DropModel
-from starenv.render import StarSignal
+from starenv.sim.drops import DropChannel, DropModel
+from starenv.sim.imager import Detector, DetectorSpec
+from starenv.sim.render import StarSignal
 
 QUIET = {"hot_pixel_fraction": 0.0, "cosmic_ray_rate_per_cm2_s": 0.0}
 

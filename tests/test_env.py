@@ -13,8 +13,8 @@ from scipy.spatial.transform import Rotation
 
 import starenv
 from starenv.env import MAX_STARS, StarSensorEnv
-from starenv.frames import ARCSEC
 from starenv.registration import register_envs
+from starenv.sim.conventions import ARCSEC
 
 SMALL = {"heads.0.width": 128, "heads.0.height": 128}  # paper_000 on a 128 px crop: fast
 

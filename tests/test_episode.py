@@ -4,6 +4,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from starenv.agents.base import StepReport
 from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
 from starenv.scoring import flatten
@@ -43,10 +44,13 @@ def test_records_match_a_hand_written_loop_with_the_true_attitude():
     class Oracle:
         """Reports the true attitude, fed by the wrapper below (no real agent may see truth)."""
 
-        latency_s, source = {}, "solved"
+        report = StepReport(source="solved")
 
-        def reset(self, env):
+        def reset(self, sensor):
             pass
+
+        def describe(self):
+            return {}
 
         def __call__(self, obs):
             return {"attitude": self.truth["attitude"], "attitude_valid": np.int8(1)}
@@ -83,3 +87,12 @@ def test_observers_are_closed_with_the_error_and_it_propagates():
     with pytest.raises(RuntimeError, match="observer failure"):
         run_episode(env, None, seed=0, steps=5, observers=[seen])
     assert isinstance(seen.closed, RuntimeError) and len(seen.logs) == 2
+
+
+def test_a_policy_that_misses_the_contract_is_refused_by_name():
+    class Bare:
+        def __call__(self, obs):
+            return None
+
+    with pytest.raises(TypeError, match="Policy protocol"):
+        run_episode(StarSensorEnv("paper_004"), Bare(), seed=0, steps=1)

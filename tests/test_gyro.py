@@ -1,4 +1,4 @@
-"""Tests of the gyro model (starenv.gyro): Allan signatures of each error term, exact interval averaging, state
+"""Tests of the gyro model (starenv.sim.gyro): Allan signatures of each error term, exact interval averaging, state
 carried across calls and argument checks."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from starenv.frames import ARCSEC, DEG
-from starenv.gyro import (
+from starenv.sim.conventions import ARCSEC, DEG
+from starenv.sim.gyro import (
     GM_PEAK_TAU_PER_T,
     IEEE_FLICKER_FLOOR,
     Gyro,

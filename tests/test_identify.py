@@ -13,16 +13,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import Identifier, Stars
-from starenv.agents.identify import (
-    LostInSpaceIdentifier,
-    TrackingIdentifier,
-    build_patterns,
-    pattern_keys,
-)
-from starenv.frames import DEG
-from starenv.optics import BrownConrady, Camera
-from starenv.sky import load_catalog
+from starenv.agents.base import Identifier, StarMeasurements
+from starenv.agents.identify.database import build_patterns, pattern_keys
+from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
+from starenv.agents.identify.tracking import TrackingIdentifier
+from starenv.sim.conventions import DEG
+from starenv.sim.optics import BrownConrady, Camera
+from starenv.sim.sky import load_catalog
 
 EPOCH = 2026.0
 MERGE_PX = 2.0  # scene stars this close to a brighter one are one detection (as the identifiers assume)
@@ -108,12 +105,12 @@ def scene(cameras, catalog, attitude, rng, noise_px=0.3, missing=0.0, false_star
             flux = np.concatenate([flux, np.exp(rng.uniform(np.log(low), np.log(high), false_stars))])
             ids = np.concatenate([ids, np.full(false_stars, -1)])
         shuffle = rng.permutation(len(ids))
-        stars.append(Stars(xy[shuffle], flux[shuffle]))
+        stars.append(StarMeasurements(xy[shuffle], flux[shuffle]))
         truth.append(ids[shuffle])
     return stars, truth
 
 
-def tally(result: list[Stars], truth: list[np.ndarray]) -> tuple[int, int, int]:
+def tally(result: list[StarMeasurements], truth: list[np.ndarray]) -> tuple[int, int, int]:
     """(true stars present, correctly identified, wrongly identified) over all heads."""
     claimed = np.concatenate([s.catalog_id for s in result])
     true = np.concatenate(truth)
@@ -149,9 +146,9 @@ class CountingIdentifier:
     def reset(self, cameras, catalog):
         self.inner.reset(cameras, catalog)
 
-    def identify(self, stars, cameras, prior):
+    def identify(self, stars, cameras, prior, images=None):
         self.calls += 1
-        return self.inner.identify(stars, cameras, prior)
+        return self.inner.identify(stars, cameras, prior, images)
 
 
 def test_identifiers_implement_the_protocol():
@@ -196,10 +193,10 @@ def test_lost_in_space_needs_four_stars_and_never_guesses(lost_in_space, catalog
     brightest = np.argsort(-stars[0].flux)
     for count in (0, 1, 3):
         keep = brightest[:count]
-        result = identifier.identify([Stars(stars[0].xy[keep], stars[0].flux[keep])], [NARROW], None)
+        result = identifier.identify([StarMeasurements(stars[0].xy[keep], stars[0].flux[keep])], [NARROW], None)
         assert np.all(result[0].catalog_id == -1)
     # Random points are no star field: nothing is identified.
-    noise = Stars(rng.uniform(0, 1023, (40, 2)), rng.uniform(1, 100, 40))
+    noise = StarMeasurements(rng.uniform(0, 1023, (40, 2)), rng.uniform(1, 100, 40))
     assert np.all(identifier.identify([noise], [NARROW], None)[0].catalog_id == -1)
 
 
@@ -233,7 +230,7 @@ def test_a_false_star_next_to_a_star_does_not_take_its_id(lost_in_space, catalog
     attitude = Rotation.random(random_state=rng)
     stars, truth = scene([NARROW], catalog, attitude, rng)
     decoys = stars[0].xy + [2.0, -1.5]  # each star gets a fainter detection 2.5 px away
-    doubled = Stars(np.vstack([stars[0].xy, decoys]), np.concatenate([stars[0].flux, stars[0].flux / 4]))
+    doubled = StarMeasurements(np.vstack([stars[0].xy, decoys]), np.concatenate([stars[0].flux, stars[0].flux / 4]))
     expected = np.concatenate([truth[0], np.full(len(decoys), -1)])
     assert np.array_equal(identifier.identify([doubled], [NARROW], None)[0].catalog_id, expected)
     assert np.array_equal(tracker.identify([doubled], [NARROW], attitude)[0].catalog_id, expected)
@@ -273,7 +270,7 @@ def test_multi_head_pools_heads(multi_head):
             continue
         for h in (1, 2):
             keep = rng.choice(len(stars[h]), 3, replace=False)
-            stars[h], truth[h] = Stars(stars[h].xy[keep], stars[h].flux[keep]), truth[h][keep]
+            stars[h], truth[h] = StarMeasurements(stars[h].xy[keep], stars[h].flux[keep]), truth[h][keep]
         result = identifier.identify(stars, SEED_004_HEADS, None)
         for h in range(3):
             assert np.array_equal(result[h].catalog_id, truth[h])
@@ -412,12 +409,12 @@ def test_bad_options_are_refused(factory, option, value):
 
 def test_identify_needs_reset_and_one_stars_per_head(lost_in_space):
     with pytest.raises(RuntimeError, match="reset"):
-        LostInSpaceIdentifier().identify([Stars(np.zeros((5, 2)))], [NARROW], None)
+        LostInSpaceIdentifier().identify([StarMeasurements(np.zeros((5, 2)))], [NARROW], None)
     with pytest.raises(RuntimeError, match="reset"):
-        TrackingIdentifier().identify([Stars(np.zeros((5, 2)))], [NARROW], Rotation.identity())
+        TrackingIdentifier().identify([StarMeasurements(np.zeros((5, 2)))], [NARROW], Rotation.identity())
     identifier, _ = lost_in_space["narrow"]
-    with pytest.raises(ValueError, match="one Stars per camera"):
-        identifier.identify([Stars(np.zeros((5, 2)))] * 2, [NARROW], None)
+    with pytest.raises(ValueError, match="one StarMeasurements per camera"):
+        identifier.identify([StarMeasurements(np.zeros((5, 2)))] * 2, [NARROW], None)
 
 
 @pytest.mark.parametrize("max_pattern_stars, least", [(4, 12), (12, 30)])
@@ -433,7 +430,8 @@ def test_lost_in_space_from_the_five_brightest_stars(catalog, max_pattern_stars,
         if len(stars[0]) < 5:
             continue
         keep = np.argsort(-stars[0].flux)[:5]
-        ids = identifier.identify([Stars(stars[0].xy[keep], stars[0].flux[keep])], [NARROW], None)[0].catalog_id
+        brightest = StarMeasurements(stars[0].xy[keep], stars[0].flux[keep])
+        ids = identifier.identify([brightest], [NARROW], None)[0].catalog_id
         assert np.all((ids == -1) | (ids == truth[0][keep]))
         frames += 1
         identified += np.array_equal(ids, truth[0][keep])

@@ -14,7 +14,8 @@ def _torch_loaded_after(code: str) -> bool:
 
 
 def test_core_simulator_does_not_import_torch():
-    assert not _torch_loaded_after("import starenv, starenv.env, starenv.sensor, starenv.datasets")
+    core = "starenv, starenv.env, starenv.sim.sensor, starenv.datasets, starenv.agents.pipeline, starenv.bench"
+    assert not _torch_loaded_after(f"import {core}")
 
 
 def test_learned_package_imports_torch():

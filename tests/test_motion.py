@@ -8,8 +8,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from starenv.frames import DEG, angle_between
-from starenv.motion import (
+from starenv.sim.conventions import DEG, angle_between
+from starenv.sim.motion import (
     ConstantRate,
     LeoNadir,
     Motion,

@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from starenv.agents.base import GyroRecord, StepInput
-from starenv.agents.neural import ebpnn
-from starenv.agents.neural.agent import WEIGHTS, IterationNetDeblurrer
-from starenv.agents.neural.ebpnn import EnsembleNet
-from starenv.agents.neural.features import SUMFC_GRID, initial_estimate, optimal_iterations, sumfc
-from starenv.optics import Camera
-from starenv.restoration import richardson_lucy
+from starenv.agents.base import StepInput
+from starenv.agents.restore.algorithms import richardson_lucy
+from starenv.agents.restore.iteration import ebpnn
+from starenv.agents.restore.iteration.deblurrer import WEIGHTS, IterationNetDeblurrer
+from starenv.agents.restore.iteration.ebpnn import EnsembleNet
+from starenv.agents.restore.iteration.features import SUMFC_GRID, initial_estimate, optimal_iterations, sumfc
+from starenv.sim.gyro import GyroSamples
+from starenv.sim.optics import Camera
 
 
 def test_sumfc_of_a_point_and_of_box_trails_matches_the_dirichlet_kernel():
@@ -101,9 +102,9 @@ def test_save_and_load_round_trip(tmp_path):
 def test_shipped_weights_fit_their_training_set_and_more_blur_means_more_iterations():
     net = EnsembleNet.load(WEIGHTS)
     assert WEIGHTS.stat().st_size < 20_000
-    # Measured when the weights were made (python -m starenv.agents.neural.train): mean error 19.3 iterations over
-    # labels 1..250 (docs/seed000_restoration.md).  The labels are noisy (one frame each), so the tolerance is on the
-    # mean error: 12 % of the label range (30 iterations).
+    # Measured when the weights were made (python -m starenv.agents.restore.iteration.train): mean error 19.3
+    # iterations over labels 1..250 (docs/seed000_restoration.md).  The labels are noisy (one frame each), so the
+    # tolerance is on the mean error: 12 % of the label range (30 iterations).
     fitted = np.array([net.predict(v) for v in net.sumfc])
     assert np.mean(np.abs(fitted - net.iterations)) < 0.12 * np.ptp(net.iterations)
     # Seed 000's Fig. 6 relation, as measured here: smaller SUMFC (longer trails) -> more iterations.
@@ -117,7 +118,7 @@ def test_shipped_weights_fit_their_training_set_and_more_blur_means_more_iterati
 def test_deblurrer_runs_the_predicted_count_with_the_gyro_kernel():
     camera = Camera.from_focal_length(0.049, 20e-6, 96, 80)
     ts = np.arange(0.99, 1.006, 0.002)
-    gyro = GyroRecord(ts, np.tile(np.radians([20.0, 0.0, 0.0]), (len(ts), 1)), 0.002)
+    gyro = GyroSamples(ts, np.tile(np.radians([20.0, 0.0, 0.0]), (len(ts), 1)), 0.002)
     image = np.random.default_rng(0).poisson(100.0, (80, 96)).astype(np.uint16)
     step = StepInput([image], np.ones(1, bool), 1.0, 0.01, gyro, [camera])
     agent = IterationNetDeblurrer()

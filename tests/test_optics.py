@@ -7,8 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from starenv.frames import pointing, radec_to_unit
-from starenv.optics import (
+from starenv.sim.conventions import pointing, radec_to_unit
+from starenv.sim.optics import (
     BrownConrady,
     Camera,
     LegendreField,
@@ -172,7 +172,7 @@ def test_behind_the_camera_is_masked():
 
 
 def test_radial_xy_closed_form_jacobian_matches_central_differences():
-    from starenv.optics import _central_jacobian
+    from starenv.sim.optics import _central_jacobian
 
     model = RadialXY(kx=3e-7, ky=-2e-7, center=(250.0, 260.0))
     k = seed_000_camera(model).intrinsics

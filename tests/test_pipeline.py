@@ -13,14 +13,14 @@ from starenv.scoring import flatten, summarize
 
 def run(env, pipeline, steps):
     obs, info = env.reset(seed=0)
-    pipeline.reset(env)
+    pipeline.reset(env.unwrapped.sensor_info)
     records, sources, latencies = [], [], []
     for _ in range(steps):
         action = pipeline(obs)
-        sources.append((pipeline.source, bool(obs["frame_valid"].all())))
-        latencies.append(dict(pipeline.latency_s))
+        sources.append((pipeline.report.source, bool(obs["frame_valid"].all())))
+        latencies.append(dict(pipeline.report.latency_s))
         obs, _, _, _, info = env.step(action)
-        records.append(flatten(info["scores"], pipeline.latency_s))
+        records.append(flatten(info["scores"], pipeline.report.latency_s))
     return records, sources, latencies
 
 
@@ -28,7 +28,7 @@ def test_agents_plug_in_as_instance_class_or_string():
     assert isinstance(load_agent(SvdSolver(), "solver"), SvdSolver)
     assert isinstance(load_agent(SvdSolver, "solver"), SvdSolver)
     assert isinstance(load_agent("starenv.agents.solve:SvdSolver", "solver"), SvdSolver)
-    tracking = load_agent("starenv.agents.identify:TrackingIdentifier", "identifier", gate_px=7.0)
+    tracking = load_agent("starenv.agents.identify.tracking:TrackingIdentifier", "identifier", gate_px=7.0)
     assert tracking.gate_px == 7.0
     assert load_agent(None, "deblurrer") is None
 

@@ -9,24 +9,17 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import GyroRecord, Prediction, Predictor, Stars, StepInput
+from starenv.agents.base import Prediction, Predictor, StarMeasurements, StepInput, step_input
 from starenv.agents.predict import FirstOrderPredictor, QuaternionPredictor
 from starenv.env import StarSensorEnv
-from starenv.frames import ARCSEC
-from starenv.optics import Camera
-from starenv.sky import StarCatalog
+from starenv.sim.conventions import ARCSEC
+from starenv.sim.gyro import GyroSamples
+from starenv.sim.optics import Camera
+from starenv.sim.sky import StarCatalog
 
 NOISE_FREE = {"gyro.arw_deg_rthr": 0.0, "gyro.rrw_deg_hr_rthr": 0.0, "gyro.bias_instability_deg_hr": 0.0}
 TINY = {"heads.0.width": 64, "heads.0.height": 64}  # attitude runs need no stars
 CONING = {"kind": "coning", "half_angle_deg": 2.0, "frequency_hz": 4.0, "initial_ra_deg": 83.8, "initial_dec_deg": -5.4}
-
-
-def step_input(obs: dict, env: StarSensorEnv) -> StepInput:
-    """What a pipeline knows at one step, from the observation and the calibrated cameras."""
-    n = int(obs["gyro"]["count"])
-    gyro = GyroRecord(obs["gyro"]["t"][:n].copy(), obs["gyro"]["rate"][:n].copy(), 1.0 / env.scenario.gyro.rate_hz)
-    return StepInput(list(obs["frames"]), obs["frame_valid"].astype(bool), float(obs["time_s"]),
-                     float(obs["exposure_s"]), gyro, env.cameras)
 
 
 @dataclass
@@ -36,7 +29,7 @@ class Episode:
     cameras: list[Camera]
     truth: list[dict]
     predictions: list[dict[str, Prediction]]
-    gyro: GyroRecord
+    gyro: GyroSamples
 
     def sample_angles(self, t0: float, t1: float) -> np.ndarray:
         """|rate dt| (rad) of the gyro samples whose interval overlaps (t0, t1] (s)."""
@@ -54,7 +47,7 @@ def episode(overrides: dict, predictors: dict[str, Predictor], n_frames: int) ->
     then ``n_frames`` frames predicted without update."""
     env = StarSensorEnv("paper_000", {"lost_after_steps": 10**6, **overrides})
     obs, info = env.reset()
-    step = step_input(obs, env)
+    step = step_input(obs, env.sensor_info)
     for predictor in predictors.values():
         predictor.reset(env.cameras, env.sensor.catalog)
         predictor.predict(step)
@@ -62,16 +55,16 @@ def episode(overrides: dict, predictors: dict[str, Predictor], n_frames: int) ->
     truth, predictions, records = [info["truth"]], [], [step.gyro]
     for _ in range(n_frames):
         obs, _, _, _, info = env.step(None)
-        step = step_input(obs, env)
+        step = step_input(obs, env.sensor_info)
         predictions.append({name: p.predict(step) for name, p in predictors.items()})
         truth.append(info["truth"])
         records.append(step.gyro)
-    gyro = GyroRecord(np.concatenate([r.t for r in records]), np.concatenate([r.rate for r in records]), step.gyro.dt)
+    gyro = GyroSamples(np.concatenate([r.t for r in records]), np.concatenate([r.rate for r in records]), step.gyro.dt)
     return Episode(env.cameras, truth, predictions, gyro)
 
 
-def truth_stars(info: dict) -> list[Stars]:
-    return [Stars(s["xy_mid"], catalog_id=s["catalog_id"]) for s in info["truth"]["stars"]]
+def truth_stars(info: dict) -> list[StarMeasurements]:
+    return [StarMeasurements(s["xy_mid"], catalog_id=s["catalog_id"]) for s in info["truth"]["stars"]]
 
 
 def attitude_error(prediction: Prediction, truth: dict) -> float:
@@ -79,7 +72,7 @@ def attitude_error(prediction: Prediction, truth: dict) -> float:
     return float((prediction.attitude * Rotation.from_quat(truth["attitude"]).inv()).magnitude())
 
 
-def matched(predicted: Stars, truth: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def matched(predicted: StarMeasurements, truth: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Catalog ids, predicted and true positions (n, 2) px of the stars in both lists."""
     ids, p, t = np.intersect1d(predicted.catalog_id, truth["catalog_id"], return_indices=True)
     return ids, predicted.xy[p], truth["xy_mid"][t]
@@ -97,7 +90,7 @@ def test_nothing_is_predicted_before_the_first_update_and_nan_gyro_is_refused(pr
     obs, _ = env.reset()
     predictor = predictor_class()
     predictor.reset(env.cameras, env.sensor.catalog)
-    step = step_input(obs, env)
+    step = step_input(obs, env.sensor_info)
     prediction = predictor.predict(step)
     assert prediction.attitude is None and [len(s) for s in prediction.stars] == [0]
     step.gyro.rate[0, 1] = np.nan
@@ -150,9 +143,9 @@ def test_first_order_increment_is_eq7_with_plus_f():
     theta, dt = np.array([2e-3, -3e-3, 5e-3]), 0.002
     predictor = FirstOrderPredictor()
     predictor.reset([camera], catalog)
-    predictor.update(Rotation.identity(), [Stars(xy, catalog_id=[5, 6, 7, 8])], 0.0)
+    predictor.update(Rotation.identity(), [StarMeasurements(xy, catalog_id=[5, 6, 7, 8])], 0.0)
     step = StepInput([np.zeros((512, 512), np.uint16)], np.array([True]), dt, 0.01,
-                     GyroRecord(np.array([dt]), theta[None, :] / dt, dt), [camera])
+                     GyroSamples(np.array([dt]), theta[None, :] / dt, dt), [camera])
     prediction = predictor.predict(step)
     f, (tx, ty, tz) = camera.fx, theta
     x, y = xy[:, 0] - camera.cx, xy[:, 1] - camera.cy

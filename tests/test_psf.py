@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import starenv  # noqa: F401  (registers the environments)
-from starenv.agents.base import GyroRecord
-from starenv.psf import boresight_blur, cross_boresight_blur, gyro_rotation, path_kernel, star_paths
+from starenv.agents.restore.kernels import boresight_blur, cross_boresight_blur, gyro_rotation, path_kernel, star_paths
+from starenv.sim.gyro import GyroSamples
 
 NOISE_FREE_GYRO = {"gyro.arw_deg_rthr": 0.0, "gyro.rrw_deg_hr_rthr": 0.0, "gyro.bias_instability_deg_hr": 0.0}
 
@@ -23,7 +23,7 @@ def second_frame(scenario: str, head: int = 0, **overrides):
     obs, _, _, _, info = env.step(None)
     base = env.unwrapped
     n = int(obs["gyro"]["count"])
-    gyro = GyroRecord(obs["gyro"]["t"][:n], obs["gyro"]["rate"][:n], 1.0 / base.scenario.gyro.rate_hz)
+    gyro = GyroSamples(obs["gyro"]["t"][:n], obs["gyro"]["rate"][:n], 1.0 / base.scenario.gyro.rate_hz)
     stars = {k: np.asarray(v) for k, v in info["truth"]["stars"][head].items()}
     return base, gyro, float(obs["time_s"]), base.scenario.exposure_s, stars
 
@@ -150,21 +150,21 @@ def test_gyro_rotation_constant_and_piecewise_rates():
     dt = 0.005
     t = 0.1 + dt * np.arange(1, 9)
     w = np.array([0.3, -0.2, 0.5])
-    const = GyroRecord(t, np.tile(w, (8, 1)), dt)
+    const = GyroSamples(t, np.tile(w, (8, 1)), dt)
     times = np.array([0.09, 0.1, 0.1234, 0.14, 0.15])  # before, inside and after the samples
     got = gyro_rotation(const, times, 0.12)
     want = Rotation.from_rotvec(-np.outer(times - 0.12, w))
     assert np.allclose((got * want.inv()).magnitude(), 0.0, atol=1e-14)
     # Two different samples: the rotation over both intervals is the product of the per-interval rotations.
     rates = np.array([[0.1, 0.0, 0.0], [0.0, 0.4, 0.0]])
-    two = GyroRecord(np.array([1.0, 1.0 + dt]), rates, dt)
+    two = GyroSamples(np.array([1.0, 1.0 + dt]), rates, dt)
     got = gyro_rotation(two, np.array([1.0 + dt]), 1.0 - dt)
     want = Rotation.from_rotvec(-rates[1] * dt) * Rotation.from_rotvec(-rates[0] * dt)
     assert (got * want.inv()).magnitude()[0] < 1e-15
 
 
 def test_bad_input_names_the_field():
-    gyro = GyroRecord(np.array([0.1]), np.zeros((1, 3)), 0.01)
+    gyro = GyroSamples(np.array([0.1]), np.zeros((1, 3)), 0.01)
     base, *_ = second_frame("Paper000")
     cam = base.cameras[0]
     with pytest.raises(ValueError, match="xy_mid"):
@@ -172,7 +172,7 @@ def test_bad_input_names_the_field():
     with pytest.raises(ValueError, match="t_end"):
         star_paths(cam, gyro, 0.02, 0.01, np.zeros((1, 2)))
     with pytest.raises(ValueError, match="gyro"):
-        star_paths(cam, GyroRecord(np.zeros(0), np.zeros((0, 3)), 0.01), 0.0, 0.01, np.zeros((1, 2)))
+        star_paths(cam, GyroSamples(np.zeros(0), np.zeros((0, 3)), 0.01), 0.0, 0.01, np.zeros((1, 2)))
     with pytest.raises(ValueError, match="path"):
         path_kernel(np.zeros((4, 3)), 1.0)
     with pytest.raises(ValueError, match="sigma_px"):

@@ -7,13 +7,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.special import erf
 
-from starenv import render
-from starenv.frames import DEG, pointing, radec_to_unit
-from starenv.motion import ConstantRate, Trajectory
-from starenv.optics import Camera
-from starenv.photometry import Photometry
-from starenv.render import PSF_RADIUS_SIGMA, StarRenderer
-from starenv.sky import StarCatalog
+from starenv.sim import render
+from starenv.sim.conventions import DEG, pointing, radec_to_unit
+from starenv.sim.motion import ConstantRate, Trajectory
+from starenv.sim.optics import Camera
+from starenv.sim.photometry import Photometry
+from starenv.sim.render import PSF_RADIUS_SIGMA, StarRenderer
+from starenv.sim.sky import StarCatalog
 
 # Seed 000's camera: f = 49 mm, 20 um pixels (2450 px focal length), here a 512 x 512 sensor; 10 ms exposure.
 CAM = Camera.from_focal_length(49e-3, 20e-6, 512, 512)
@@ -146,7 +146,7 @@ def test_rolling_shutter_delays_each_row():
 
 
 def test_real_sky_frame_has_hipparcos_stars_where_the_catalog_says():
-    from starenv.sky import load_catalog
+    from starenv.sim.sky import load_catalog
 
     cat = load_catalog(6.0)
     ra, dec = math.radians(83.8), math.radians(-5.4)  # Orion

@@ -6,7 +6,7 @@ from scipy.signal import fftconvolve
 from skimage.restoration import richardson_lucy as sk_richardson_lucy
 from skimage.restoration import wiener as sk_wiener
 
-from starenv.restoration import convolve_batch, richardson_lucy, richardson_lucy_batch, wiener
+from starenv.agents.restore.algorithms import convolve_batch, richardson_lucy, richardson_lucy_batch, wiener
 
 
 def random_case(seed: int, shape=(48, 64), kernel=(7, 9)):

@@ -16,10 +16,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from starenv.frames import DEG, angle_between, pointing, unit_to_radec
-from starenv.motion import ConstantRate, LeoNadir, Sequence, Superposed, TorqueFree
-from starenv.optics import LegendreField, NoDistortion, RadialXY
 from starenv.scenario import SCENARIO_DIR, Scenario, ScenarioError, bundled_names, load
+from starenv.sim.conventions import DEG, angle_between, pointing, unit_to_radec
+from starenv.sim.motion import ConstantRate, LeoNadir, Sequence, Superposed, TorqueFree
+from starenv.sim.optics import LegendreField, NoDistortion, RadialXY
 
 BUNDLED = bundled_names()
 PAPERS = [f"paper_{i:03d}" for i in range(5)]

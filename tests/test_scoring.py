@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from starenv.frames import ARCSEC
-from starenv.render import StarTruth
 from starenv.scoring import attitude_error, score_stars, summarize
+from starenv.sim.conventions import ARCSEC
+from starenv.sim.render import StarTruth
 
 
 def truth(xy, ids, detectable=None):

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from starenv.frames import ARCSEC_PER_RAD, angle_between
 from starenv.scenario import load
-from starenv.sensor import StarSensor
+from starenv.sim.conventions import ARCSEC_PER_RAD, angle_between
+from starenv.sim.sensor import StarSensor
 
 
 def quiet(n_heads: int) -> dict:

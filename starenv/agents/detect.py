@@ -43,8 +43,8 @@ from scipy import ndimage
 from scipy.special import erf, ndtr
 
 from starenv import checks
-from starenv.agents.base import Stars
-from starenv.optics import Camera
+from starenv.agents.base import StarMeasurements
+from starenv.sim.optics import Camera
 
 METHODS = ("cog", "iwcog", "gaussian")
 BACKGROUND_SUBSAMPLE = 3  # every n-th pixel of a tile gives the robust start (median, IQR) of the clipping
@@ -179,7 +179,7 @@ class CentroidDetector:
         # Track test: light in the two pixels beside a centred PSF's peak, per unit peak, along PAIR_STEPS.
         self._pair_ratio = np.array([2.0 * rho, 2.0 * rho**2, 2.0 * rho, 2.0 * rho**2])
 
-    def detect(self, image: np.ndarray, camera: Camera) -> Stars:
+    def detect(self, image: np.ndarray, camera: Camera) -> StarMeasurements:
         """Stars on ``image`` (DN, integer or float such as a restored frame; shape (camera.height, camera.width)),
         brightest first: positions (px) and flux (DN above background)."""
         data = self._checked(image, camera)
@@ -197,7 +197,7 @@ class CentroidDetector:
         area = np.bincount(component, minlength=n_label)
         kept = np.flatnonzero((area[1:] >= self.min_area_px) & (area[1:] <= self.max_area_px)) + 1
         if len(kept) == 0:
-            return Stars(np.zeros((0, 2)))
+            return StarMeasurements(np.zeros((0, 2)))
         if len(kept) >= MAX_LABELS:
             raise ValueError(f"{len(kept)} blobs above the threshold: raise threshold_sigma or min_area_px")
         lut = np.zeros(n_label, np.float32)
@@ -235,7 +235,7 @@ class CentroidDetector:
             fit = np.flatnonzero(good & ~streak & ~saturated)
             xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit])
         order = np.flatnonzero(good)[np.argsort(-blobs.flux[good], kind="stable")][: self.max_stars]
-        return Stars(xy[order], blobs.flux[order])
+        return StarMeasurements(xy[order], blobs.flux[order])
 
     def background(self, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Local background level and noise (DN) of a float32 image, both float32 (H, W): on tiles of about

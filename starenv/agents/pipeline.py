@@ -7,10 +7,9 @@ prior); the solver turns the identified stars of all heads into one attitude.  W
 identified (a dropped or smeared-out frame), the predicted attitude is reported instead, so the predictor carries
 the pipeline through; the estimate (solved or predicted) becomes the predictor's new state.
 
-Agents are given as instances, classes or ``"module:Class"`` strings.  Every agent call is timed:
-``latency_s`` holds the last step's wall time per role (s) and ``source`` says where the attitude came from.  With a
-deblurrer, ``restorations`` holds per head the last step's ``(raw, restored)`` images (None for a head without a
-valid frame) and ``deblur_info`` the deblurrer's ``last_info`` after that head (``{}`` if it sets none).
+Agents are given as instances, classes or ``"module:Class"`` strings (a path an agent had before it moved is
+refused with its new one).  ``Pipeline`` is a :class:`~starenv.agents.base.Policy`: after each call ``report`` holds
+the step's wall time per role (s), where the attitude came from and, with a deblurrer, each head's restoration.
 """
 
 from __future__ import annotations
@@ -23,42 +22,49 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import (
-    AGENT_ROLES,
-    AttitudeSolver,
-    Deblurrer,
-    DistortionCorrector,
-    GyroRecord,
-    Identifier,
+    MAX_STARS,
+    ROLE_PROTOCOLS,
     Prediction,
-    Predictor,
-    StarDetector,
-    Stars,
-    StepInput,
+    Restoration,
+    SensorInfo,
+    StarMeasurements,
+    StepReport,
+    step_input,
 )
-from starenv.agents.identify import field_mag_limit
-from starenv.env import MAX_STARS
-from starenv.sky import load_catalog
+from starenv.agents.identify.database import field_mag_limit
+from starenv.scenario import PipelineSpec
+from starenv.sim.sky import load_catalog
 
 ONBOARD_MAX_MAG = 7.5
-ROLES = dict(zip(AGENT_ROLES, (Predictor, Deblurrer, StarDetector, DistortionCorrector, Identifier, AttitudeSolver),
-                 strict=True))
 DEFAULTS = {
     "predictor": "starenv.agents.predict:QuaternionPredictor",
     "deblurrer": None,
     "detector": "starenv.agents.detect:CentroidDetector",
     "corrector": None,
-    "identifier": "starenv.agents.identify:TrackingIdentifier",
+    "identifier": "starenv.agents.identify.tracking:TrackingIdentifier",
     "solver": "starenv.agents.solve:QuestSolver",
+}
+MOVED = {  # agents' former "module:Class" paths -> where they live now
+    "starenv.agents.identify:TrackingIdentifier": "starenv.agents.identify.tracking:TrackingIdentifier",
+    "starenv.agents.identify:LostInSpaceIdentifier": "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier",
+    "starenv.agents.deblur:RoiDeblurrer": "starenv.agents.restore.roi:RoiDeblurrer",
+    "starenv.agents.deblur:RichardsonLucyDeblurrer": "starenv.agents.restore.frame:RichardsonLucyDeblurrer",
+    "starenv.agents.deblur:WienerDeblurrer": "starenv.agents.restore.frame:WienerDeblurrer",
+    "starenv.agents.curvature:CurvatureRLDeblurrer": "starenv.agents.restore.curvature:CurvatureRLDeblurrer",
+    "starenv.agents.neural.agent:IterationNetDeblurrer":
+        "starenv.agents.restore.iteration.deblurrer:IterationNetDeblurrer",
 }
 
 
 def load_agent(spec: Any, role: str, **kwargs) -> Any:
     """An agent for ``role`` from an instance, a class or a ``"module:Class"`` string (kwargs go to the class)."""
-    if role not in ROLES:
-        raise ValueError(f"unknown agent role {role!r}; roles are {', '.join(ROLES)}")
+    if role not in ROLE_PROTOCOLS:
+        raise ValueError(f"unknown agent role {role!r}; roles are {', '.join(ROLE_PROTOCOLS)}")
     if spec is None:
         return None
     if isinstance(spec, str):
+        if spec in MOVED:
+            raise ValueError(f"{role}: agent {spec!r} has moved: write {MOVED[spec]!r}")
         module_name, sep, class_name = spec.partition(":")
         if not sep or not module_name or not class_name:
             raise ValueError(f"{role}: agent {spec!r} must be written 'module:Class', e.g. {DEFAULTS['detector']!r}")
@@ -69,8 +75,9 @@ def load_agent(spec: Any, role: str, **kwargs) -> Any:
     agent = spec(**kwargs) if isinstance(spec, type) else spec
     if kwargs and not isinstance(spec, type):
         raise ValueError(f"{role}: options {sorted(kwargs)} can only be given with a class or 'module:Class'")
-    if not isinstance(agent, ROLES[role]):
-        raise ValueError(f"{role}: {type(agent).__name__} does not implement the {ROLES[role].__name__} protocol")
+    if not isinstance(agent, ROLE_PROTOCOLS[role]):
+        raise ValueError(f"{role}: {type(agent).__name__} does not implement the "
+                         f"{ROLE_PROTOCOLS[role].__name__} protocol")
     return agent
 
 
@@ -84,42 +91,41 @@ class Pipeline:
     """
 
     def __init__(self, catalog_mag_limit: float | None = None, options: dict[str, dict] | None = None, **agents):
-        unknown = set(agents) - set(ROLES)
+        unknown = set(agents) - set(ROLE_PROTOCOLS)
         if unknown:
-            raise ValueError(f"unknown agent roles {sorted(unknown)}; roles are {', '.join(ROLES)}")
+            raise ValueError(f"unknown agent roles {sorted(unknown)}; roles are {', '.join(ROLE_PROTOCOLS)}")
         options = options or {}
         specs = {**DEFAULTS, **agents}
-        self.agents = {role: load_agent(specs[role], role, **options.get(role, {})) for role in ROLES}
+        self.agents = {role: load_agent(specs[role], role, **options.get(role, {})) for role in ROLE_PROTOCOLS}
         if self.agents["detector"] is None or self.agents["identifier"] is None or self.agents["solver"] is None:
             raise ValueError("a pipeline needs at least a detector, an identifier and a solver")
         self.catalog_mag_limit = catalog_mag_limit
         self.catalog = None
-        self.cameras = []
-        self.gyro_dt = 0.0
-        self.latency_s: dict[str, float] = {}
-        self.source = "none"
-        self.restorations: list[tuple[np.ndarray, np.ndarray] | None] = []
-        self.deblur_info: list[dict] = []
+        self.sensor: SensorInfo | None = None
+        self.report = StepReport()
+
+    @classmethod
+    def from_spec(cls, spec: PipelineSpec) -> Pipeline:
+        """The pipeline a :class:`~starenv.scenario.PipelineSpec` describes."""
+        return cls(spec.catalog_mag_limit, spec.options, **spec.agents)
 
     @classmethod
     def for_scenario(cls, scenario, agents: dict | None = None, options: dict | None = None) -> Pipeline:
         """The pipeline a scenario's ``[pipeline]`` table asks for, with ``agents`` / ``options`` taking precedence."""
-        spec = scenario.pipeline
-        merged = {**spec.options}
-        for role, opts in (options or {}).items():
-            merged[role] = {**merged.get(role, {}), **opts}
-        return cls(spec.catalog_mag_limit, merged, **{**spec.agents, **(agents or {})})
+        return cls.from_spec(scenario.pipeline.replaced_by(PipelineSpec(agents or {}, options or {})))
+
+    @property
+    def cameras(self) -> list:
+        return [] if self.sensor is None else self.sensor.cameras
 
     def describe(self) -> dict[str, str]:
         """Role -> agent class path (``None`` where the role is empty)."""
         return {r: None if a is None else f"{type(a).__module__}:{type(a).__name__}" for r, a in self.agents.items()}
 
-    def reset(self, env) -> None:
-        """Prepare for an episode of ``env`` (a ``StarSensorEnv``, possibly wrapped): cameras, onboard catalog."""
-        base = env.unwrapped
-        self.cameras = base.cameras
-        self.gyro_dt = 1.0 / base.scenario.gyro.rate_hz  # the gyro's sample interval, part of its datasheet
-        epoch = base.scenario.epoch
+    def reset(self, sensor: SensorInfo) -> None:
+        """Prepare for an episode of a sensor (``env.unwrapped.sensor_info``): cameras, onboard catalog."""
+        self.sensor = sensor
+        epoch = sensor.epoch
         limit = self.catalog_mag_limit
         if limit is None:
             limit = min(field_mag_limit(self.cameras, load_catalog(8.0, epoch).magnitude, 30.0), ONBOARD_MAX_MAG)
@@ -127,69 +133,61 @@ class Pipeline:
         for role in ("predictor", "identifier"):
             if self.agents[role] is not None:
                 self.agents[role].reset(self.cameras, self.catalog)
-        self.source = "none"
+        self.report = StepReport()
 
     def _timed(self, role: str, fn, *args):
         t0 = time.perf_counter()
         out = fn(*args)
-        self.latency_s[role] = self.latency_s.get(role, 0.0) + time.perf_counter() - t0
+        latency = self.report.latency_s
+        latency[role] = latency.get(role, 0.0) + time.perf_counter() - t0
         return out
 
     def __call__(self, obs: dict) -> dict:
         """The action for one observation."""
         if self.catalog is None:
-            raise RuntimeError("call Pipeline.reset(env) before using it")
-        self.latency_s = {}
-        t_start = time.perf_counter()
-        gyro = obs["gyro"]
-        n = int(gyro["count"])
-        step = StepInput(
-            images=list(obs["frames"]),
-            frame_valid=np.asarray(obs["frame_valid"], dtype=bool),
-            time_s=float(obs["time_s"]),
-            exposure_s=float(obs["exposure_s"]),
-            gyro=GyroRecord(gyro["t"][:n], gyro["rate"][:n], self.gyro_dt),
-            cameras=self.cameras,
-        )
+            raise RuntimeError("call Pipeline.reset(env.unwrapped.sensor_info) before using it")
         ag = self.agents
-        prediction = Prediction(None, [Stars(np.zeros((0, 2))) for _ in self.cameras])
+        report = self.report = StepReport(detector=ag["detector"] if ag["deblurrer"] is not None else None)
+        t_start = time.perf_counter()
+        step = step_input(obs, self.sensor)
+        prediction = Prediction(None, [StarMeasurements(np.zeros((0, 2))) for _ in self.cameras])
         if ag["predictor"] is not None:
             prediction = self._timed("predictor", ag["predictor"].predict, step)
-        found = []
-        self.restorations = [None] * len(self.cameras) if ag["deblurrer"] is not None else []
-        self.deblur_info = [{} for _ in self.restorations]
+        found, seen = [], []
+        report.restorations = [None] * len(self.cameras) if ag["deblurrer"] is not None else []
         for h, cam in enumerate(self.cameras):
             if not step.frame_valid[h]:
-                found.append(Stars(np.zeros((0, 2))))
+                found.append(StarMeasurements(np.zeros((0, 2))))
+                seen.append(None)
                 continue
             image = step.images[h][: cam.height, : cam.width]
             if ag["deblurrer"] is not None:
                 raw = image
                 image = self._timed("deblurrer", ag["deblurrer"].deblur, image, h, step)
-                self.restorations[h] = (raw, image)
-                self.deblur_info[h] = dict(getattr(ag["deblurrer"], "last_info", {}) or {})
+                info = dict(getattr(ag["deblurrer"], "last_info", {}) or {})
+                report.restorations[h] = Restoration(raw, image, info)
+            seen.append(image)
             stars = self._timed("detector", ag["detector"].detect, image, cam)
             if ag["corrector"] is not None:
                 stars = self._timed("corrector", ag["corrector"].correct, stars, h, cam)
             found.append(stars)
-        identified = self._timed("identifier", ag["identifier"].identify, found, self.cameras, prediction.attitude)
+        identified = self._timed("identifier", ag["identifier"].identify, found, self.cameras, prediction.attitude,
+                                 seen)
         attitude = self._solve(identified)
         if attitude is not None:
-            self.source = "solved"
+            report.source = "solved"
             if ag["corrector"] is not None:
                 for h, cam in enumerate(self.cameras):
                     self._timed("corrector", ag["corrector"].learn, identified[h], h, cam, attitude, self.catalog)
         elif prediction.attitude is not None:
-            attitude, self.source = prediction.attitude, "predicted"
-        else:
-            self.source = "none"
+            attitude, report.source = prediction.attitude, "predicted"
         if attitude is not None and ag["predictor"] is not None:
-            carried = identified if self.source == "solved" else prediction.stars
+            carried = identified if report.source == "solved" else prediction.stars
             self._timed("predictor", ag["predictor"].update, attitude, carried, step.time_s)
-        self.latency_s["pipeline"] = time.perf_counter() - t_start
+        report.latency_s["pipeline"] = time.perf_counter() - t_start
         return self._action(attitude, identified, prediction)
 
-    def _solve(self, identified: list[Stars]) -> Rotation | None:
+    def _solve(self, identified: list[StarMeasurements]) -> Rotation | None:
         body, inertial = [], []
         for cam, stars in zip(self.cameras, identified, strict=True):
             ok = stars.catalog_id >= 0
@@ -205,7 +203,7 @@ class Pipeline:
         except ValueError:  # e.g. all identified stars (nearly) parallel: no attitude from this frame
             return None
 
-    def _action(self, attitude: Rotation | None, identified: list[Stars], prediction: Prediction) -> dict:
+    def _action(self, attitude: Rotation | None, identified: list[StarMeasurements], prediction: Prediction) -> dict:
         n_heads = len(self.cameras)
         action = {
             "attitude": np.array([0.0, 0.0, 0.0, 1.0]) if attitude is None else attitude.as_quat(),
@@ -224,7 +222,7 @@ class Pipeline:
             action["detections_xy"][h, :k] = stars.xy[order]
             action["catalog_ids"][h, :k] = stars.catalog_id[order]
             action["detection_mask"][h, :k] = 1
-            pred = prediction.stars[h] if h < len(prediction.stars) else Stars(np.zeros((0, 2)))
+            pred = prediction.stars[h] if h < len(prediction.stars) else StarMeasurements(np.zeros((0, 2)))
             known = np.flatnonzero((pred.catalog_id >= 0) & np.all(np.isfinite(pred.xy), axis=1))[:MAX_STARS]
             k = len(known)
             action["predicted_xy"][h, :k] = pred.xy[known]

@@ -31,10 +31,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from starenv import checks
-from starenv.agents.base import GyroRecord, Prediction, Stars, StepInput
-from starenv.frames import skew
-from starenv.optics import Camera, NoDistortion, RadialXY
-from starenv.sky import StarCatalog
+from starenv.agents.base import Prediction, StarMeasurements, StepInput
+from starenv.sim.conventions import skew
+from starenv.sim.gyro import GyroSamples
+from starenv.sim.optics import Camera, NoDistortion, RadialXY
+from starenv.sim.sky import StarCatalog
 
 TIME_TOLERANCE_S = 1e-9  # instants closer than this (s) are the same: frame and gyro times share one clock
 FIELD_PAD_RAD = 1e-3  # widening (rad) of the cone of directions imaged near the sensor, for stars on its rim
@@ -51,7 +52,7 @@ class _GyroHistory:
         self.end = np.zeros(0)
         self.rate = np.zeros((0, 3))
 
-    def add(self, record: GyroRecord) -> None:
+    def add(self, record: GyroSamples) -> None:
         """Append a record's samples newer than the newest held; NaN/inf or unordered samples raise ValueError."""
         t = checks.finite("gyro.t", record.t)
         rate = checks.finite("gyro.rate", record.rate)
@@ -125,8 +126,8 @@ def _field_radius(camera: Camera, margin_px: float) -> float:
     return float(min(reach + shift + FIELD_PAD_RAD, np.pi / 2))
 
 
-def _no_stars(n_heads: int) -> list[Stars]:
-    return [Stars(np.zeros((0, 2))) for _ in range(n_heads)]
+def _no_stars(n_heads: int) -> list[StarMeasurements]:
+    return [StarMeasurements(np.zeros((0, 2))) for _ in range(n_heads)]
 
 
 class _GyroPropagator:
@@ -176,7 +177,7 @@ class _GyroPropagator:
         if self._cameras is None:
             raise RuntimeError(f"call {type(self).__name__}.reset(cameras, catalog) first")
 
-    def update(self, attitude: Rotation, stars: list[Stars], time_s: float) -> None:
+    def update(self, attitude: Rotation, stars: list[StarMeasurements], time_s: float) -> None:
         """Take the estimate for ``time_s`` (s): attitude inertial -> body and the stars seen on each head."""
         self._require_reset()
         if not isinstance(attitude, Rotation) or not attitude.single:
@@ -184,7 +185,7 @@ class _GyroPropagator:
         checks.finite("attitude", attitude.as_quat(), shape=(4,))
         stars = list(stars)
         if len(stars) != len(self._cameras):
-            raise ValueError(f"stars must hold one Stars per head ({len(self._cameras)}), got {len(stars)}")
+            raise ValueError(f"stars must hold one StarMeasurements per head ({len(self._cameras)}), got {len(stars)}")
         self._time = float(checks.finite("time_s", time_s, shape=()))
         self._state = self._state_from(attitude, stars)
         self._gyro.forget_before(self._time)
@@ -193,7 +194,7 @@ class _GyroPropagator:
 class FirstOrderPredictor(_GyroPropagator):
     """Seed 000's star-spot predictor (its Sec. 2.2-2.3), carrying the stars given in ``update``.
 
-    * Eq. 1: measured positions are corrected with the calibrated camera's :class:`~starenv.optics.RadialXY`
+    * Eq. 1: measured positions are corrected with the calibrated camera's :class:`~starenv.sim.optics.RadialXY`
       coefficients when it has that model, else not at all (the paper knows no other distortion model).
     * Eq. 2: corrected positions become direction vectors ``((x - cx)/fx, (y - cy)/fy, 1)``, normalised.  The paper
       writes ``(x - x0, y - y0, -f)``: its image coordinates lie on the physical focal plane behind the lens, ours
@@ -226,7 +227,7 @@ class FirstOrderPredictor(_GyroPropagator):
     0.016 px (1.3 arcsec) after 15 s, while the attitude's shortfall stays near 1e-4 arcsec.
     """
 
-    def _state_from(self, attitude: Rotation, stars: list[Stars]):
+    def _state_from(self, attitude: Rotation, stars: list[StarMeasurements]):
         directions = [
             cam.mounting.inv().apply(_paper_camera(cam).unproject(s.xy))
             for cam, s in zip(self._cameras, stars, strict=True)
@@ -251,7 +252,7 @@ class FirstOrderPredictor(_GyroPropagator):
             near = v[:, 2] >= np.cos(_field_radius(paper, self.margin_px))
             xy, _ = paper.project(v[near])
             keep = paper.in_frame(xy, self.margin_px)
-            stars.append(Stars(xy[keep], catalog_id=head_ids[near][keep]))
+            stars.append(StarMeasurements(xy[keep], catalog_id=head_ids[near][keep]))
         return Prediction(Rotation.from_matrix(attitude), stars)
 
 
@@ -305,7 +306,7 @@ class QuaternionPredictor(_GyroPropagator):
         _, first = np.unique(rows, return_index=True)
         return rows[np.sort(first)]
 
-    def _state_from(self, attitude: Rotation, stars: list[Stars]):
+    def _state_from(self, attitude: Rotation, stars: list[StarMeasurements]):
         return attitude, [self._catalog_rows(s.catalog_id) for s in stars]
 
     def _propagated(self, state, delta_angles: np.ndarray, coning: np.ndarray):
@@ -320,7 +321,7 @@ class QuaternionPredictor(_GyroPropagator):
         stars = [self._stars_on(cam, rows, attitude) for cam, rows in zip(self._cameras, seen, strict=True)]
         return Prediction(attitude, stars)
 
-    def _stars_on(self, camera: Camera, seen_rows: np.ndarray, attitude: Rotation) -> Stars:
+    def _stars_on(self, camera: Camera, seen_rows: np.ndarray, attitude: Rotation) -> StarMeasurements:
         """Catalog stars imaged within ``margin_px`` of ``camera``'s sensor at ``attitude``, last seen ones first."""
         to_camera = camera.inertial_to_camera(attitude)
         in_cone = self._catalog.cone(to_camera.inv().apply([0.0, 0.0, 1.0]), _field_radius(camera, self.margin_px))
@@ -329,4 +330,4 @@ class QuaternionPredictor(_GyroPropagator):
         rows = np.concatenate([seen_rows[np.isin(seen_rows, in_cone)], entering])
         xy, front = camera.project(to_camera.apply(self._catalog.unit[rows]))
         keep = front & camera.in_frame(xy, self.margin_px)
-        return Stars(xy[keep], catalog_id=self._catalog.hip[rows[keep]])
+        return StarMeasurements(xy[keep], catalog_id=self._catalog.hip[rows[keep]])

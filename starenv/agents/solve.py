@@ -2,8 +2,8 @@
 
 Each solver takes ``body`` (n, 3) and ``inertial`` (n, 3) direction vectors (row i of each is the same star) and
 optional positive ``weights`` (n,), and returns the rotation ``A`` (inertial -> body, ``b = A.apply(r)``, see
-:mod:`starenv.frames`) minimising Wahba's loss ``sum_i w_i |b_i - A r_i|^2``.  Vectors need not be unit length (they
-are normalised); weights default to equal and only their ratios matter.
+:mod:`starenv.sim.conventions`) minimising Wahba's loss ``sum_i w_i |b_i - A r_i|^2``.  Vectors need not be unit
+length (they are normalised); weights default to equal and only their ratios matter.
 
 Internally quaternions are Shuster's ``[q1, q2, q3, q4]`` (vector part, then scalar) of the attitude matrix
 ``A(q) = (q4^2 - |q|^2) I + 2 q q^T - 2 q4 [q x]``, which is scipy's quaternion of ``A^-1``: ``[-q1, -q2, -q3, q4]``
@@ -217,6 +217,15 @@ class DavenportSolver:
     def solve(self, body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None = None) -> Rotation:
         """Attitude (inertial -> body) minimising Wahba's loss; see :func:`wahba_inputs` for the checks."""
         return _rotation(_q_method(_profile(*wahba_inputs(body, inertial, weights))))
+
+
+def wahba_svd(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
+    """Batched, unweighted Wahba: attitude matrices (..., 3, 3), inertial -> body, minimising sum |b - A r|^2 over
+    pairs of unit vectors (..., n, 3), by SVD.  Unchecked, for the identifiers' inner loops; :class:`SvdSolver` is
+    the checked, weighted single solution."""
+    u, _, vt = np.linalg.svd(np.swapaxes(body, -1, -2) @ inertial)
+    u[..., :, 2] *= np.linalg.det(u @ vt)[..., None]
+    return u @ vt
 
 
 class SvdSolver:

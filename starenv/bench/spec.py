@@ -47,19 +47,19 @@ from pathlib import Path
 from typing import Any
 
 from starenv import scenario as scenario_mod
-from starenv.agents.base import AGENT_ROLES
+from starenv.config import ConfigError, Table, is_number, parse_toml
 
 BENCH_DIR = Path(__file__).resolve().parent.parent.parent / "benches"
 MCAP_RECORDER = "starenv.record.mcap:McapRecorder"
 PRESETS: dict[str, dict[str, str]] = {
     "scenario": {},
-    "lost_in_space": {"identifier": "starenv.agents.identify:LostInSpaceIdentifier"},
-    "tracking": {"identifier": "starenv.agents.identify:TrackingIdentifier"},
+    "lost_in_space": {"identifier": "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier"},
+    "tracking": {"identifier": "starenv.agents.identify.tracking:TrackingIdentifier"},
 }
 FORMAT = 1  # bumps when the meaning of a run's identity changes
 
 
-class BenchError(ValueError):
+class BenchError(ConfigError):
     """A bench file that does not describe a valid benchmark."""
 
 
@@ -80,12 +80,11 @@ class PipelineChoice:
         """The ``Pipeline`` for a loaded scenario (raises ValueError for an unloadable agent or a wrong protocol)."""
         from starenv.agents.pipeline import Pipeline
 
-        spec = scenario.pipeline
-        options = {**spec.options}
-        for role, opts in self.options.items():
-            options[role] = {**options.get(role, {}), **opts}
-        limit = spec.catalog_mag_limit if self.catalog_mag_limit is None else self.catalog_mag_limit
-        return Pipeline(limit, options, **{**spec.agents, **self.agents})
+        return Pipeline.from_spec(scenario.pipeline.replaced_by(self.spec))
+
+    @property
+    def spec(self) -> scenario_mod.PipelineSpec:
+        return scenario_mod.PipelineSpec(self.agents, self.options, self.catalog_mag_limit)
 
 
 @dataclass(frozen=True)
@@ -171,58 +170,13 @@ def resolve_bench(bench: str | Path) -> Path:
     raise BenchError(f"bench {str(bench)!r} is neither a file nor a bundled bench (bundled: {names})")
 
 
-class _Checker:
-    """Typed reads of one table that refuses keys it was not asked about."""
-
-    def __init__(self, data: Any, path: str, source: str):
-        self.path, self.source, self.used = path, source, set()
-        if not isinstance(data, dict):
-            raise BenchError(f"{source}: {path or '(top level)'}: expected a table, got {data!r}")
-        self.data = data
-
-    def where(self, key: str) -> str:
-        return f"{self.path}.{key}" if self.path else key
-
-    def fail(self, key: str, expected: str, got: Any) -> None:
-        raise BenchError(f"{self.source}: {self.where(key)}: expected {expected}, got {got!r}")
-
-    def get(self, key: str, default: Any = None) -> Any:
-        self.used.add(key)
-        return self.data.get(key, default)
-
-    def finish(self, allowed_extra: tuple[str, ...] = ()) -> None:
-        extra = sorted(set(self.data) - self.used - set(allowed_extra))
-        if extra:
-            allowed = ", ".join(sorted(self.used | set(allowed_extra)))
-            raise BenchError(f"{self.source}: {self.where(extra[0])}: unknown key (allowed here: {allowed})")
-
-    def integers(self, key: str, default: Any, low: int) -> Any:
-        v = self.get(key, default)
-        if v is default:
-            return v
-        ok = isinstance(v, list) and v and all(isinstance(x, int) and not isinstance(x, bool) and x >= low for x in v)
-        if not ok:
-            self.fail(key, f"a non-empty list of integers >= {low}", v)
-        return v
-
-    def integer(self, key: str, default: Any, low: int) -> Any:
-        v = self.get(key, default)
-        if v is not default and (not isinstance(v, int) or isinstance(v, bool) or v < low):
-            self.fail(key, f"an integer >= {low}", v)
-        return v
-
-
-def _number(x: Any) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _sweep(tbl: _Checker) -> Sweep:
+def _sweep(tbl: Table) -> Sweep:
     key = tbl.get("key")
     if not isinstance(key, str) or not key or not all(key.split(".")):
         tbl.fail("key", "a dotted scenario key path like 'motion.rate_dps'", key)
     axis = tbl.get("axis")
     if axis is not None:
-        if not (isinstance(axis, list) and axis and all(_number(a) for a in axis) and any(a != 0 for a in axis)):
+        if not (isinstance(axis, list) and axis and all(is_number(a) for a in axis) and any(a != 0 for a in axis)):
             tbl.fail("axis", "a non-zero list of numbers, e.g. [1, 0, 0]", axis)
         axis = tuple(float(a) for a in axis)
     values = tbl.get("values")
@@ -231,7 +185,7 @@ def _sweep(tbl: _Checker) -> Sweep:
         tbl.fail("values", "either values = [...] or start / stop / step, not both", values)
     if values is None:
         for k, v in (("start", start), ("stop", stop), ("step", step)):
-            if not _number(v):
+            if not is_number(v):
                 tbl.fail(k, "a number (or give values = [...] instead)", v)
         if step <= 0 or stop < start:
             tbl.fail("step", f"a step > 0 with stop >= start (start = {start}, stop = {stop})", step)
@@ -241,7 +195,7 @@ def _sweep(tbl: _Checker) -> Sweep:
         values = [round(start + i * step, 12) for i in range(n)]
     elif not isinstance(values, list) or not values:
         tbl.fail("values", "a non-empty list of values", values)
-    if axis is not None and not all(_number(v) for v in values):
+    if axis is not None and not all(is_number(v) for v in values):
         tbl.fail("values", "numbers (magnitudes along axis)", values)
     if len({json.dumps(v, sort_keys=True) for v in values}) != len(values):
         tbl.fail("values", "distinct values", values)
@@ -249,33 +203,9 @@ def _sweep(tbl: _Checker) -> Sweep:
     return Sweep(key, tuple(values), axis)
 
 
-def _pipeline_choice(name: str, tbl: _Checker) -> PipelineChoice:
-    agents: dict[str, str | None] = {}
-    for role in AGENT_ROLES:
-        v = tbl.get(role)
-        if v is None:
-            continue
-        module, sep, cls = v.partition(":") if isinstance(v, str) else ("", "", "")
-        if isinstance(v, str) and v.lower() == "none":
-            agents[role] = None
-        elif not (sep and module and cls):
-            tbl.fail(role, "'module:Class' (e.g. 'starenv.agents.solve:SvdSolver') or 'none'", v)
-        else:
-            agents[role] = v
-    limit = tbl.get("catalog_mag_limit")
-    if limit is not None and not (_number(limit) and -2.0 <= limit <= 14.0):
-        tbl.fail("catalog_mag_limit", "a number in [-2, 14]", limit)
-    options = {}
-    opts = tbl.get("options")
-    if opts is not None:
-        ot = _Checker(opts, tbl.where("options"), tbl.source)
-        for role in AGENT_ROLES:
-            o = ot.get(role)
-            if o is not None:
-                options[role] = dict(_Checker(o, ot.where(role), tbl.source).data)
-        ot.finish()
-    tbl.finish()
-    return PipelineChoice(name, agents, options, limit)
+def _pipeline_choice(name: str, tbl: Table) -> PipelineChoice:
+    spec = scenario_mod.parse_pipeline(tbl)
+    return PipelineChoice(name, spec.agents, spec.options, spec.catalog_mag_limit)
 
 
 def _recorder(value: Any, source: str) -> str | None:
@@ -314,28 +244,25 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
     """Parse and validate bench TOML ``text``; with ``check`` every scenario x sweep value is loaded with its
     overrides and every pipeline is built once per scenario (an agent that does not load fails here)."""
     bench_dir = Path(".") if bench_dir is None else bench_dir
-    try:
-        data = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise BenchError(f"{source}: not valid TOML: {exc}") from exc
-    top = _Checker(data, "", source)
+    data = parse_toml(text, source, BenchError)
+    top = Table(data, "", source, BenchError)
     name = top.get("name", Path(source).stem)
     description = top.get("description", "")
     for k, v in (("name", name), ("description", description)):
         if not isinstance(v, str):
             top.fail(k, "a string", v)
-    default_seeds = top.integers("seeds", None, 0)
-    default_steps = top.integer("steps", None, 1)
+    default_seeds = top.integer_list("seeds", None, 0)
+    default_steps = top.number("steps", None, low=1, integer=True)
     recorder = _recorder(top.get("recordings", False), source)
     pipelines = {}
     ptbl = top.get("pipelines", {})
-    pt = _Checker(ptbl, "pipelines", source)
+    pt = Table(ptbl, "pipelines", source, BenchError)
     for pname in ptbl:
         if pname in PRESETS:
             raise BenchError(f"{source}: pipelines.{pname}: {pname!r} is a built-in preset name; pick another name")
         if not pname.replace("_", "").replace("-", "").isalnum():
             raise BenchError(f"{source}: pipelines.{pname}: expected a name of letters, digits, '_' or '-'")
-        pipelines[pname] = _pipeline_choice(pname, _Checker(pt.get(pname), f"pipelines.{pname}", source))
+        pipelines[pname] = _pipeline_choice(pname, Table(pt.get(pname), f"pipelines.{pname}", source, BenchError))
     for pname, agents in PRESETS.items():
         pipelines[pname] = PipelineChoice(pname, dict(agents))
     groups = top.get("runs")
@@ -345,13 +272,10 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
 
     runs: list[RunSpec] = []
     for gi, group in enumerate(groups):
-        g = _Checker(group, f"runs.{gi}", source)
+        g = Table(group, f"runs.{gi}", source, BenchError)
         path = _scenario_path(g.get("scenario"), bench_dir, g.where("scenario"), source)
         text_sc = path.read_text(encoding="utf-8")
-        try:
-            sc_data = tomllib.loads(text_sc)
-        except tomllib.TOMLDecodeError as exc:
-            raise BenchError(f"{source}: {g.where('scenario')}: {path}: not valid TOML: {exc}") from exc
+        sc_data = parse_toml(text_sc, f"{source}: {g.where('scenario')}: {path}", BenchError)
         sc_name = sc_data.get("name", path.stem)
         if not isinstance(sc_name, str) or not sc_name.replace("_", "").replace("-", "").isalnum():
             raise BenchError(f"{source}: {g.where('scenario')}: {path}: name must be letters, digits, '_' or '-'")
@@ -365,9 +289,9 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
         if not isinstance(fixed, dict):
             g.fail("set", "a table of dotted scenario keys, e.g. { \"motion.rate_dps\" = [0, 0, 5] }", fixed)
         sweep_tbl = g.get("sweep")
-        sweep = None if sweep_tbl is None else _sweep(_Checker(sweep_tbl, g.where("sweep"), source))
-        seeds = g.integers("seeds", default_seeds, 0)
-        steps = g.integer("steps", default_steps, 1)
+        sweep = None if sweep_tbl is None else _sweep(Table(sweep_tbl, g.where("sweep"), source, BenchError))
+        seeds = g.integer_list("seeds", default_seeds, 0)
+        steps = g.number("steps", default_steps, low=1, integer=True)
         record = g.get("recordings", True)
         if not isinstance(record, bool):
             g.fail("recordings", "true or false (false: this group's runs are not recorded)", record)

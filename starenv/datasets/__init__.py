@@ -1,4 +1,7 @@
-"""Samples drawn from the simulator for learning (numpy only): dataset specs, per-sample generation, shards on disk."""
+"""Samples drawn from the simulator for learning (numpy only, no torch): each reproducible alone from its scenario
+and seed.  ``spec``/``samples``/``shards``: dataset specs (TOML), per-sample generation from (spec, seed, index) and
+atomic shards on disk (``starenv dataset``); ``smear``: smeared frames with their sharp, noise-free reference
+(deblurring); ``star_fields``: centroid sets with truth ids without rendering."""
 
 from starenv.datasets.samples import navigation_stars, sample
 from starenv.datasets.shards import build_dataset, read_meta, shard_path

@@ -1,4 +1,4 @@
-"""One sample drawn from the simulator: a frame of head 0 rendered by :class:`~starenv.sensor.StarSensor` at a drawn
+"""One sample drawn from the simulator: a frame of head 0 rendered by :class:`~starenv.sim.sensor.StarSensor` at a drawn
 attitude and rate, with its labels.
 
 Sample ``i`` of a spec is a pure function of (spec, ``i``): ``np.random.SeedSequence([spec.seed, i]).spawn(2)``
@@ -23,9 +23,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from starenv.datasets.spec import VARIANTS, DatasetSpec
-from starenv.frames import DEG, pointing, radec_to_unit, unit_to_radec
-from starenv.sensor import StarSensor
-from starenv.sky import StarCatalog, load_catalog
+from starenv.sim.conventions import DEG, pointing, radec_to_unit, unit_to_radec
+from starenv.sim.sensor import StarSensor
+from starenv.sim.sky import StarCatalog, load_catalog
 
 MAIN_STAR_FIELDS = ("image", "label", "hip", "attitude", "rate_dps", "variant")
 CENTROID_FIELDS = ("xy", "catalog_id", "magnitude", "count", "attitude", "rate_dps", "variant")

@@ -178,7 +178,7 @@ class McapRecorder:
         self._sizes = [(h.camera.height, h.camera.width) for h in sc.heads]
         self._period_ns = time_ns(sc.frame_period_s)
         self._seed = int(seed)
-        self._agents = pipeline.describe() if hasattr(pipeline, "describe") else None
+        self._agents = None if pipeline is None else pipeline.describe()
         self._steps = 0
         self._last_ns = None
         self.path.parent.mkdir(parents=True, exist_ok=True)

@@ -133,7 +133,7 @@ class RerunRecorder:
         self._sizes = [(h.camera.height, h.camera.width) for h in sc.heads]
         self._period_ns = int(round(sc.frame_period_s * 1e9))
         self._last = None
-        agents = pipeline.describe() if hasattr(pipeline, "describe") else None
+        agents = None if pipeline is None else pipeline.describe()
         key = json.dumps([sc.to_toml(), int(seed), agents]).encode()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         rec_id = str(uuid.UUID(bytes=hashlib.sha256(key).digest()[:16]))

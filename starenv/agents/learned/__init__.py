@@ -1,1 +1,2 @@
-"""Learned agents: torch models, their agents and training.  The only package of the project that imports torch."""
+"""Learned (torch) agents: their networks, the agents that run them in the pipeline, and their training.  torch is
+imported only inside this package, so the simulator and the classical agents load without it."""

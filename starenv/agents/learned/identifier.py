@@ -5,7 +5,7 @@
 2. A candidate fixes the boresight direction but not the roll.  The catalogue stars about it are projected at roll
    0; each (detection, catalogue star) pair at the same distance from the principal point (within
    ``radius_px``) votes for the roll that turns one onto the other, and the ``rolls`` most voted rolls are kept.
-3. Each (main star, roll) attitude is verified against the catalogue (:mod:`starenv.agents.verify`): detections
+3. Each (main star, roll) attitude is verified against the catalogue (:mod:`starenv.agents.identify.verify`): detections
    paired within ``radius_px``, the attitude refined, and the false-match probability, times the hypotheses tried,
    compared with ``max_false``; ``min_matches`` pairs are needed.  The first verified hypothesis labels the
    detections; when none verifies, nothing is identified (a wrong main star never becomes an attitude).
@@ -26,12 +26,13 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import Stars
+from starenv.agents.base import StarMeasurements
+from starenv.agents.identify.geometry import body_vectors, with_ids
+from starenv.agents.identify.verify import verify
 from starenv.agents.learned.seed002 import Seed002Config, Seed002Net
-from starenv.agents.verify import body_vectors, labelled, verify
-from starenv.frames import pointing, unit_to_radec
-from starenv.optics import Camera
-from starenv.sky import StarCatalog
+from starenv.sim.conventions import pointing, unit_to_radec
+from starenv.sim.optics import Camera
+from starenv.sim.sky import StarCatalog
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "seed002_orion"
@@ -91,13 +92,13 @@ class NetworkIdentifier:
         order = np.argsort(-prob, kind="stable")
         return self.classes[order], prob[order]
 
-    def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None = None,
-                 images: list[np.ndarray | None] | None = None) -> list[Stars]:
+    def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
+                 images: list[np.ndarray | None] | None = None) -> list[StarMeasurements]:
         """Label all heads' detections (HIP; -1 unidentified) from head 0's frame; ``prior`` is not used."""
         if self.catalog is None:
             raise RuntimeError("call reset(cameras, catalog) before identify")
         body, heads = body_vectors(stars, cameras)
-        none = labelled(stars, np.full(len(body), -1, dtype=np.int64))
+        none = with_ids(stars, np.full(len(body), -1, dtype=np.int64))
         self.last = {"ranked": None, "main": None, "verified": False}
         if images is None or images[0] is None:
             return none
@@ -117,7 +118,7 @@ class NetworkIdentifier:
             v = verify(attitude, body, heads, cameras, self.catalog, self.radius_px, given=1)
             if v.matched >= self.min_matches and v.p_false * trials <= self.max_false:
                 self.last.update(main=int(hip), verified=True, attitude=v.attitude, p_false=v.p_false)
-                return labelled(stars, v.ids)
+                return with_ids(stars, v.ids)
         return none
 
     def _rolls(self, cam: Camera, cam0: Rotation, det: np.ndarray) -> list[float]:

@@ -1,11 +1,12 @@
 """Regenerate the EBPNN's weights from simulated frames (deterministic given ``--seed``)::
 
-    python -m starenv.agents.neural.train --out starenv/agents/neural/iteration_net.npz [--samples 100] [--seed 0]
+    python -m starenv.agents.restore.iteration.train --out starenv/agents/restore/iteration/iteration_net.npz \
+        [--samples 100] [--seed 0]
 
 Each sample is frame 0 of scenario ``paper_000`` pointed at a random sky position, turning at a constant rate:
 about camera X, Y, X and Y together, or all three axes (the centre kernel sees no roll, so pure roll is left out),
 0.5 to 60 deg/s per turning axis.  The kernel comes from the frame's own gyro samples, as the deblurrer builds it;
-the label is the optimal iteration count (:func:`~starenv.agents.neural.features.optimal_iterations`) on the
+the label is the optimal iteration count (:func:`~starenv.agents.restore.iteration.features.optimal_iterations`) on the
 central ``CROP`` x ``CROP`` pixels against the sharp noise-free rendering of the same instant, the MSE taken over
 the pixels within 3 px of the sharp stars.  (Over the whole crop the MSE is ruled by the slow decay of the flat
 starting estimate on empty sky, which labelled most frames at the cap whatever their blur.)
@@ -20,17 +21,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from starenv.agents.base import GyroRecord, StepInput
-from starenv.agents.curvature import centre_kernel
-from starenv.agents.neural.agent import KERNEL_SIGMA_PX, WEIGHTS
-from starenv.agents.neural.ebpnn import EnsembleNet
-from starenv.agents.neural.features import optimal_iterations, sumfc
-from starenv.env import StarSensorEnv
+from starenv import scenario as scenario_mod
+from starenv.agents.base import StepInput
+from starenv.agents.restore.iteration.deblurrer import KERNEL_SIGMA_PX, WEIGHTS
+from starenv.agents.restore.iteration.ebpnn import EnsembleNet
+from starenv.agents.restore.iteration.features import optimal_iterations, sumfc
+from starenv.agents.restore.kernels import centre_kernel
+from starenv.datasets.smear import smeared_frame
 
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "xy": (1.0, 1.0, 0.0), "xyz": (1.0, 1.0, 1.0)}
 RATE_DPS = (0.5, 60.0)
 CROP = 256
-SHARP_EXPOSURE_S = 1e-6  # the "sharp" reference: the scene over a vanishing exposure, scaled to the real one
 MAX_ITERATIONS = 250
 STAR_DN = 1.0  # the MSE is taken within 3 px of where the sharp scene has at least this much signal
 
@@ -38,21 +39,15 @@ STAR_DN = 1.0  # the MSE is taken within 3 px of where the sharp scene has at le
 def sample(seed: int, axis: str, rate_dps: float, ra_deg: float, dec_deg: float) -> tuple[float, int]:
     """(SUMFC, optimal iteration count) of one simulated frame."""
     rate = [float(a * rate_dps) for a in AXES[axis]]
-    env = StarSensorEnv("paper_000", overrides={"motion.rate_dps": rate, "motion.initial_ra_deg": ra_deg,
-                                                "motion.initial_dec_deg": dec_deg})
-    obs, _ = env.reset(seed=seed)
-    sc = env.unwrapped.scenario
-    n = int(obs["gyro"]["count"])
-    step = StepInput(list(obs["frames"]), np.ones(1, bool), float(obs["time_s"]), float(obs["exposure_s"]),
-                     GyroRecord(obs["gyro"]["t"][:n], obs["gyro"]["rate"][:n], 1.0 / sc.gyro.rate_hz),
-                     env.unwrapped.cameras)
+    scenario = scenario_mod.load("paper_000", {"motion.rate_dps": rate, "motion.initial_ra_deg": ra_deg,
+                                               "motion.initial_dec_deg": dec_deg})
+    frame = smeared_frame(scenario, seed)
+    step = StepInput([frame.image], np.ones(1, bool), frame.time_s, frame.exposure_s, frame.gyro, frame.cameras)
     kernel, _ = centre_kernel(step, 0, KERNEL_SIGMA_PX)
-    sharp = env.unwrapped.sensor.renderers[0].render(sc.trajectory, step.time_s - SHARP_EXPOSURE_S / 2,
-                                                     SHARP_EXPOSURE_S)
-    reference = sharp.signal.image() * (sc.exposure_s / SHARP_EXPOSURE_S) / sc.heads[0].detector.gain_e_per_dn
+    reference = frame.sharp
     h, w = reference.shape
     crop = (slice((h - CROP) // 2, (h + CROP) // 2), slice((w - CROP) // 2, (w + CROP) // 2))
-    image = obs["frames"][0][crop].astype(np.float64)
+    image = frame.image[crop].astype(np.float64)
     reference = reference[crop]
     near_stars = cv2.dilate((reference > STAR_DN).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     if not near_stars.any():  # an empty patch of sky: every pixel

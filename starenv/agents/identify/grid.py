@@ -11,9 +11,9 @@ the pattern's square: the set of occupied cells.
 *Matching*: per head, the detection nearest the principal point (seed 002's "main star") is the pattern star; its
 pattern from the other detections is scored against every catalogue pattern by shared cells; catalogue stars with
 at least ``min_score`` shared cells, best first (at most ``max_candidates``), give an attitude from the two pairs
-(pattern star, orientation star), verified against the whole catalogue (:mod:`starenv.agents.verify`).  The first
-verified hypothesis labels all heads' detections.  A missed or false nearest neighbour turns the whole pattern, the
-weakness seed 002 shows at high rates.  Ids are HIP numbers; -1 unidentified.
+(pattern star, orientation star), verified against the whole catalogue (:mod:`starenv.agents.identify.verify`).
+The first verified hypothesis labels all heads' detections.  A missed or false nearest neighbour turns the whole
+pattern, the weakness seed 002 shows at high rates.  Ids are HIP numbers; -1 unidentified.
 """
 
 from __future__ import annotations
@@ -25,11 +25,12 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import Stars
-from starenv.agents.triangle import _MERGE_PX, usable_stars
-from starenv.agents.verify import body_vectors, labelled, verify, wahba
-from starenv.optics import Camera
-from starenv.sky import StarCatalog
+from starenv.agents.base import StarMeasurements
+from starenv.agents.identify.geometry import body_vectors, with_ids
+from starenv.agents.identify.triangle import _MERGE_PX, usable_stars
+from starenv.agents.identify.verify import verify, wahba
+from starenv.sim.optics import Camera
+from starenv.sim.sky import StarCatalog
 
 
 def _tangent_basis(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,8 +104,8 @@ class GridIdentifier:
         self.rows, self.orient = rows, orient
         self.catalog = catalog
 
-    def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None = None,
-                 images: list[np.ndarray | None] | None = None) -> list[Stars]:
+    def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
+                 images: list[np.ndarray | None] | None = None) -> list[StarMeasurements]:
         """Label all heads' detections (HIP; -1 unidentified); ``prior`` and ``images`` are not used."""
         if self.catalog is None:
             raise RuntimeError("call reset(cameras, catalog) before identify")
@@ -131,5 +132,5 @@ class GridIdentifier:
                 attitude = wahba(mine[[centre, others[k]]], inertial)
                 v = verify(attitude, body, heads, cameras, self.catalog, self.radius_px, given=2)
                 if v.matched >= self.min_matches and v.p_false * tried <= self.max_false:
-                    return labelled(stars, v.ids)
-        return labelled(stars, np.full(len(body), -1, dtype=np.int64))
+                    return with_ids(stars, v.ids)
+        return with_ids(stars, np.full(len(body), -1, dtype=np.int64))

@@ -49,7 +49,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from starenv.checks import finite, in_range
-from starenv.frames import ARCSEC, radec_to_unit
+from starenv.sim.conventions import ARCSEC, radec_to_unit
 
 HIP_EPOCH = 1991.25  # Julian year of the Hipparcos-2 positions
 MAS = ARCSEC / 1000.0  # one milliarcsecond in radians

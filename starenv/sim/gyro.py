@@ -20,7 +20,7 @@ from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter
 
 from starenv import checks
-from starenv.frames import ARCSEC, DEG
+from starenv.sim.conventions import ARCSEC, DEG
 
 # IEEE Std 952: the bias-instability coefficient B relates to the flat floor of the Allan deviation by 0.664 B.
 IEEE_FLICKER_FLOOR = 0.664
@@ -130,10 +130,11 @@ class GyroSpec:
 @dataclass
 class GyroSamples:
     """Gyro output: ``t`` (n,) s sample timestamps (end of each interval); ``rate`` (n, 3) rad/s body frame,
-    the measured average body rate over ``(t - 1/rate_hz, t]``."""
+    the measured average body rate over ``(t - dt, t]``; ``dt`` the sample interval 1 / rate_hz (s)."""
 
     t: np.ndarray
     rate: np.ndarray
+    dt: float
 
 
 class Gyro:
@@ -190,8 +191,9 @@ class Gyro:
         ]
         self._samples_delivered = last_index
         if not blocks:
-            return GyroSamples(t=np.empty(0), rate=np.empty((0, 3)))
-        return GyroSamples(t=np.concatenate([b.t for b in blocks]), rate=np.concatenate([b.rate for b in blocks]))
+            return GyroSamples(t=np.empty(0), rate=np.empty((0, 3)), dt=self.spec.sample_interval_s)
+        return GyroSamples(t=np.concatenate([b.t for b in blocks]), rate=np.concatenate([b.rate for b in blocks]),
+                           dt=self.spec.sample_interval_s)
 
     def _sample_block(self, body_rate, first: int, stop: int) -> GyroSamples:
         """Samples with indices ``first .. stop - 1``, advancing the error state."""
@@ -215,7 +217,7 @@ class Gyro:
             accumulated = np.cumsum(np.concatenate([self._quanta_accumulated[None, :], increments]), axis=0)
             self._quanta_accumulated = accumulated[-1]
             measured = np.diff(np.floor(accumulated), axis=0) * (self._quantum_rad / dt)
-        return GyroSamples(t=index / rate_hz + offset, rate=measured)
+        return GyroSamples(t=index / rate_hz + offset, rate=measured, dt=dt)
 
 
 def _evaluate_body_rate(body_rate, times: np.ndarray) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 Convolution convention: ``'same'`` mode with zero padding, as ``scipy.signal.fftconvolve(mode="same")``: a kernel of
 size ``k`` has its origin at index ``(k - 1) // 2`` along each axis (the centre of an odd kernel, as
-:func:`starenv.psf.path_kernel` builds them).  Kernels are normalised to sum 1 on entry.
+:func:`starenv.agents.restore.kernels.path_kernel` builds them).  Kernels are normalised to sum 1 on entry.
 
 Richardson-Lucy (seed 000, Eq. 26; seed 001, Eq. 24) for ``g = f (x) h + b`` with Poisson noise::
 
@@ -16,12 +16,16 @@ of the 'same'-mode convolution, so the edge terms cancel.  (With an even size th
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 from scipy import fft
+from scipy.signal import fftconvolve
 
 from starenv import checks
+from starenv.sim.optics import Camera
 
 EPS = 1e-12  # added to the model image before dividing (skimage's value)
 THREADED_FFT_PX = 256 * 256  # transforms of at least this many pixels per image use every core
@@ -198,3 +202,164 @@ def wiener(image, psf, nsr) -> np.ndarray:
         raise ValueError("nsr must be positive where the psf's transfer function vanishes")
     spectrum = np.conj(otf) * fft.rfft2(g, workers=_workers(g.shape)) / (power + ratio)
     return fft.irfft2(spectrum, g.shape, workers=_workers(g.shape))
+
+
+MAD_TO_SIGMA = 1.4826  # standard deviation per median absolute deviation of a Gaussian
+BACKGROUND_STRIDE = 4  # every n-th pixel (each axis) enters the robust background estimate
+
+
+def robust_background(image: np.ndarray) -> tuple[float, float]:
+    """Median level and noise (``1.4826 MAD``) of an image (DN), from every ``BACKGROUND_STRIDE``-th pixel."""
+    sample = np.asarray(image[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE], dtype=np.float64)
+    level = float(np.median(sample))
+    noise = MAD_TO_SIGMA * float(np.median(np.abs(sample - level)))
+    return level, max(noise, 0.5)
+
+
+def checked_image(image, camera: Camera) -> np.ndarray:
+    """``image`` as a finite 2-D array of the camera's shape (DN), else ValueError."""
+    if not isinstance(image, np.ndarray) or image.ndim != 2:
+        raise ValueError(f"image must be a 2-D array (DN), got {type(image).__name__}")
+    if image.shape != (camera.height, camera.width):
+        raise ValueError(f"image shape {image.shape} does not match the camera's {(camera.height, camera.width)}")
+    return checks.finite("image", image)
+
+
+def resharpen(data: np.ndarray, estimate: np.ndarray, kernel: np.ndarray, psf_sigma_px: float) -> np.ndarray:
+    """The frame with each blurred star replaced by its still image: ``g - f (x) h + f (x) G``.
+
+    ``data`` g (..., H, W) the observed frame(s), ``estimate`` f the restored scene (background removed),
+    ``kernel`` h (..., kh, kw) the blur it was restored with, G the Gaussian PSF of ``psf_sigma_px`` (px).  The
+    residual ``g - f (x) h - b`` (pixel noise, what the model does not explain) is kept as observed, so the output has
+    the frame's own noise and background, with no seam where only part of the frame was restored.
+    """
+    axes = (-2, -1)
+    model = fftconvolve(estimate, kernel, mode="same", axes=axes)
+    flat = estimate.reshape(-1, *estimate.shape[-2:])
+    still = np.stack([cv2.GaussianBlur(x, (0, 0), psf_sigma_px, borderType=cv2.BORDER_REFLECT) for x in flat])
+    return data - model + still.reshape(estimate.shape)
+
+
+# Eq. 17: (dy, dx) of the three points of each tangent plane around (y, x).
+PLANES = (
+    ((0, -1), (0, 1), (1, 0)),
+    ((-1, 0), (-1, 1), (0, 1)),
+    ((-1, -1), (0, -1), (-1, 0)),
+    ((1, 0), (0, 1), (1, 1)),
+    ((-1, 0), (1, 0), (0, 1)),
+    ((0, -1), (1, 0), (1, -1)),
+    ((-1, 0), (1, 0), (0, -1)),
+    ((0, -1), (-1, 0), (0, 1)),
+)
+NEIGHBOURS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
+
+
+def _distances(nb):
+    """Eq. 17's eight signed distances, one array each, from ``nb(dy, dx)``: the neighbour values at (dy, dx)."""
+    centre = nb(0, 0)
+    for plane in PLANES:
+        yield (nb(*plane[0]) + nb(*plane[1]) + nb(*plane[2]) - 3.0 * centre) / 3.0  # exactly 0 where flat
+
+
+def _step(nb) -> np.ndarray:
+    """Eq. 18's ``d_m``: of the eight distances, the one of smallest magnitude (the first on a tie)."""
+    best = None
+    for d in _distances(nb):
+        best = d if best is None else np.where(np.abs(d) < np.abs(best), d, best)
+    return best
+
+
+def _energy(nb, step: np.ndarray, alpha: float) -> np.ndarray:
+    centre = nb(0, 0)
+    a = np.stack([np.abs(centre - nb(dy, dx)) ** alpha for dy, dx in NEIGHBOURS])
+    return np.abs(step) + np.partition(a, 3, axis=0)[:4].sum(axis=0)
+
+
+def _views(padded: np.ndarray, pad: int, shape: tuple[int, int], origin=(0, 0), stride: int = 1):
+    """Neighbour accessor over padded images (last two axes): pixels ``origin + stride * (i, j)`` of a grid
+    ``shape`` (H, W)."""
+    oy, ox = origin
+    h, w = shape
+
+    def nb(dy, dx):
+        y0, x0 = pad + oy + dy, pad + ox + dx
+        return padded[..., y0 : y0 + stride * (h - 1) + 1 : stride, x0 : x0 + stride * (w - 1) + 1 : stride]
+
+    return nb
+
+
+def plane_distances(f: np.ndarray) -> np.ndarray:
+    """Eq. 17: the signed distances (8, H, W) from each pixel to its eight tangent planes (edges replicated)."""
+    f = np.asarray(f, dtype=np.float64)
+    return np.stack(list(_distances(_views(np.pad(f, 1, mode="edge"), 1, f.shape))))
+
+
+def nearest_plane_step(f: np.ndarray) -> np.ndarray:
+    """Eq. 18: ``d_m`` (H, W), the Eq. 17 plane distance of smallest magnitude (edges replicated); ``f + d_m`` is
+    the projection of each pixel onto its nearest tangent plane."""
+    f = np.asarray(f, dtype=np.float64)
+    return _step(_views(np.pad(f, 1, mode="edge"), 1, f.shape))
+
+
+def gating_energy(f: np.ndarray, alpha: float = 1.0) -> np.ndarray:
+    """Eqs. 19-23: ``E = |d_m|`` plus the sum of the 4 smallest ``|f - f_neighbour|^alpha`` (H, W)."""
+    f = np.asarray(f, dtype=np.float64)
+    nb = _views(np.pad(f, 1, mode="edge"), 1, f.shape)
+    return _energy(nb, _step(nb), alpha)
+
+
+def curvature_energy(f: np.ndarray) -> float:
+    """The image's curvature energy ``sum |d_m|`` (grey levels), which :func:`curvature_filter` never raises."""
+    return float(np.abs(nearest_plane_step(f)).sum())
+
+
+def noise_sigma(image: np.ndarray) -> float:
+    """Robust pixel noise (same units as ``image``): MAD of horizontal neighbour differences / (0.6745 sqrt 2)."""
+    diff = np.diff(np.asarray(image, dtype=np.float64), axis=1).ravel()
+    return float(np.median(np.abs(diff - np.median(diff))) / (0.6745 * math.sqrt(2.0)))
+
+
+def curvature_filter(image: np.ndarray, threshold: float | None = None, iterations: int = 3,
+                     alpha: float = 1.0, threshold_sigma: float = 3.0) -> np.ndarray:
+    """Seed 001's improved Gaussian-curvature filter (module docstring): float64 (H, W) from a 2-D image.
+
+    ``threshold``: the energy gate T in the image's units (None: ``threshold_sigma`` times the image's noise
+    sigma); ``iterations``: passes over the image; ``alpha``: exponent of the edge-preserving potential, 1 to 2.
+    """
+    f = checks.finite("image", image).astype(np.float64, copy=True)
+    if f.ndim != 2 or min(f.shape) < 3:
+        raise ValueError(f"image must be a 2-D array of at least 3 x 3 pixels, got shape {f.shape}")
+    iterations = checks.integer("iterations", iterations, 0, 1000)
+    alpha = checks.in_range("alpha", alpha, 1.0, 2.0)
+    if threshold is None:
+        t = checks.non_negative("threshold_sigma", threshold_sigma) * noise_sigma(f)
+    else:
+        t = checks.non_negative("threshold", threshold)
+    h, w = f.shape
+    window = np.arange(-2, 3)
+    for _ in range(iterations):
+        for oy in range(3):
+            for ox in range(3):
+                grid = (len(range(oy, h, 3)), len(range(ox, w, 3)))
+                padded = np.pad(f, 2, mode="edge")
+                nb = _views(padded, 2, grid, (oy, ox), 3)
+                step = _step(nb)
+                gy, gx = np.nonzero((_energy(nb, step, alpha) >= t) & (step != 0.0))
+                if len(gy) == 0:
+                    continue
+                s = step[gy, gx]
+                y, x = oy + 3 * gy, ox + 3 * gx
+                trial = f.copy()
+                trial[y, x] += s
+                # sum |d_m| over each candidate's 3 x 3 window before and after: 5 x 5 patches of the padded
+                # images (no other pixel of the subset lies within 2 px, replicated borders included).
+                rows = (y[:, None] + window + 2)[:, :, None]
+                cols = (x[:, None] + window + 2)[:, None, :]
+                before = padded[rows, cols]
+                after = np.pad(trial, 2, mode="edge")[rows, cols]
+                inside = (((y[:, None] + window[1:-1]) % h == y[:, None] + window[1:-1])[:, :, None]
+                          & ((x[:, None] + window[1:-1]) % w == x[:, None] + window[1:-1])[:, None, :])
+                change = [(np.abs(_step(_views(p, 1, (3, 3)))) * inside).sum(axis=(1, 2)) for p in (before, after)]
+                keep = change[1] <= change[0]
+                f[y[keep], x[keep]] = trial[y[keep], x[keep]]
+    return f

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from starenv import checks
-from starenv.render import StarSignal
+from starenv.sim.render import StarSignal
 
 GAUSSIAN_SKEW_LIMIT = 0.05
 

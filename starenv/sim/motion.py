@@ -1,10 +1,10 @@
 """Spacecraft attitude motion profiles.
 
-A :class:`Motion` is relative: the attitude (inertial -> body, see :mod:`starenv.frames`) is ``A(t) = delta(t) * A0``,
-with ``delta(0) = identity`` for every profile except an :class:`Oscillation` whose angles are non-zero at t = 0 (it
-oscillates about ``A0``).  Kinematics ``dA/dt = -[w x] A`` is left-multiplicative, so the body rate ``w`` (rad/s,
-body frame) does not depend on ``A0``.  Every method accepts a time in seconds, either a float (giving a single
-rotation / a (3,) rate) or a 1-D array of n times (giving n rotations / an (n, 3) array).
+A :class:`Motion` is relative: the attitude (inertial -> body, see :mod:`starenv.sim.conventions`) is
+``A(t) = delta(t) * A0``, with ``delta(0) = identity`` for every profile except an :class:`Oscillation` whose angles are
+non-zero at t = 0 (it oscillates about ``A0``).  Kinematics ``dA/dt = -[w x] A`` is left-multiplicative, so the body
+rate ``w`` (rad/s, body frame) does not depend on ``A0``.  Every method accepts a time in seconds, either a float
+(giving a single rotation / a (3,) rate) or a 1-D array of n times (giving n rotations / an (n, 3) array).
 """
 
 from __future__ import annotations

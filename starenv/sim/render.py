@@ -25,9 +25,9 @@ import numpy as np
 from scipy.special import erf
 
 from starenv import checks
-from starenv.optics import Camera
-from starenv.photometry import Photometry
-from starenv.sky import StarCatalog
+from starenv.sim.optics import Camera
+from starenv.sim.photometry import Photometry
+from starenv.sim.sky import StarCatalog
 
 PSF_RADIUS_SIGMA = 4.5  # half-width of the PSF footprint, in sigma
 MIN_ELECTRONS = 1e-9  # expected e- below which a pixel's signal is left out

@@ -19,10 +19,10 @@ only where ``E >= threshold``.  Decisions the paper leaves open:
   The paper's alpha = 1 and 3 passes are the defaults.
 
 Deblurring (:class:`CurvatureRLDeblurrer`).  Richardson-Lucy (Eq. 24) with one motion kernel per frame: the path
-across the exposure of a star at the image centre, from the gyro samples (``starenv.psf``); the frame's median is
-the background term and the first estimate is RL's flat default (the paper gives no ``f^(0)``): started from the
-frame less its background instead, the watched centroids move at a steady pace in the first iterations, so the
-second difference of Eq. 25 vanishes and the rule fires at iteration 3 or 4, before the trails are restored
+across the exposure of a star at the image centre, from the gyro samples (``starenv.agents.restore.kernels``); the
+frame's median is the background term and the first estimate is RL's flat default (the paper gives no ``f^(0)``):
+started from the frame less its background instead, the watched centroids move at a steady pace in the first iterations,
+so the second difference of Eq. 25 vanishes and the rule fires at iteration 3 or 4, before the trails are restored
 (measured on the tests' two-star frame: 0.2 px errors at iteration 4, under 0.1 px from iteration 20).
 Stopping (Eq. 25): after iteration ``k + 1`` the tracked stars' centroids ``c_{k-1}, c_k, c_{k+1}`` (centre of
 mass of the estimate in a window around each star found on the denoised frame) must satisfy, per axis and for
@@ -32,7 +32,7 @@ and cap the iterations at ``max_iterations``.  The earliest possible stop is aft
 are needed).
 
 Output.  The RL estimate is the paper's restored image (:meth:`CurvatureRLDeblurrer.restore`); the deblurrer hands
-the detector the raw frame with each trail replaced by its still star (:func:`starenv.agents.deblur.resharpen`),
+the detector the raw frame with each trail replaced by its still star (:func:`starenv.agents.restore.frame.resharpen`),
 since the bare estimate's amplified noise and one-pixel stars are not what a detector tuned to the sensor expects.
 """
 
@@ -45,143 +45,10 @@ import cv2
 import numpy as np
 
 from starenv import checks
-from starenv.agents.deblur import exposure_path, resharpen, sigma_for, spot_sigma
-from starenv.psf import path_kernel
-from starenv.restoration import richardson_lucy
+from starenv.agents.restore.algorithms import curvature_filter, noise_sigma, resharpen, richardson_lucy
+from starenv.agents.restore.kernels import centre_kernel, sigma_for, spot_sigma
 
-# Eq. 17: (dy, dx) of the three points of each tangent plane around (y, x).
-PLANES = (
-    ((0, -1), (0, 1), (1, 0)),
-    ((-1, 0), (-1, 1), (0, 1)),
-    ((-1, -1), (0, -1), (-1, 0)),
-    ((1, 0), (0, 1), (1, 1)),
-    ((-1, 0), (1, 0), (0, 1)),
-    ((0, -1), (1, 0), (1, -1)),
-    ((-1, 0), (1, 0), (0, -1)),
-    ((0, -1), (-1, 0), (0, 1)),
-)
-NEIGHBOURS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0))
 CENTROID_FLOOR = 0.2  # watched centroids weigh each pixel above 20 % of its window's peak (RL noise stays out)
-
-
-def _distances(nb):
-    """Eq. 17's eight signed distances, one array each, from ``nb(dy, dx)``: the neighbour values at (dy, dx)."""
-    centre = nb(0, 0)
-    for plane in PLANES:
-        yield (nb(*plane[0]) + nb(*plane[1]) + nb(*plane[2]) - 3.0 * centre) / 3.0  # exactly 0 where flat
-
-
-def _step(nb) -> np.ndarray:
-    """Eq. 18's ``d_m``: of the eight distances, the one of smallest magnitude (the first on a tie)."""
-    best = None
-    for d in _distances(nb):
-        best = d if best is None else np.where(np.abs(d) < np.abs(best), d, best)
-    return best
-
-
-def _energy(nb, step: np.ndarray, alpha: float) -> np.ndarray:
-    centre = nb(0, 0)
-    a = np.stack([np.abs(centre - nb(dy, dx)) ** alpha for dy, dx in NEIGHBOURS])
-    return np.abs(step) + np.partition(a, 3, axis=0)[:4].sum(axis=0)
-
-
-def _views(padded: np.ndarray, pad: int, shape: tuple[int, int], origin=(0, 0), stride: int = 1):
-    """Neighbour accessor over padded images (last two axes): pixels ``origin + stride * (i, j)`` of a grid
-    ``shape`` (H, W)."""
-    oy, ox = origin
-    h, w = shape
-
-    def nb(dy, dx):
-        y0, x0 = pad + oy + dy, pad + ox + dx
-        return padded[..., y0 : y0 + stride * (h - 1) + 1 : stride, x0 : x0 + stride * (w - 1) + 1 : stride]
-
-    return nb
-
-
-def plane_distances(f: np.ndarray) -> np.ndarray:
-    """Eq. 17: the signed distances (8, H, W) from each pixel to its eight tangent planes (edges replicated)."""
-    f = np.asarray(f, dtype=np.float64)
-    return np.stack(list(_distances(_views(np.pad(f, 1, mode="edge"), 1, f.shape))))
-
-
-def nearest_plane_step(f: np.ndarray) -> np.ndarray:
-    """Eq. 18: ``d_m`` (H, W), the Eq. 17 plane distance of smallest magnitude (edges replicated); ``f + d_m`` is
-    the projection of each pixel onto its nearest tangent plane."""
-    f = np.asarray(f, dtype=np.float64)
-    return _step(_views(np.pad(f, 1, mode="edge"), 1, f.shape))
-
-
-def gating_energy(f: np.ndarray, alpha: float = 1.0) -> np.ndarray:
-    """Eqs. 19-23: ``E = |d_m|`` plus the sum of the 4 smallest ``|f - f_neighbour|^alpha`` (H, W)."""
-    f = np.asarray(f, dtype=np.float64)
-    nb = _views(np.pad(f, 1, mode="edge"), 1, f.shape)
-    return _energy(nb, _step(nb), alpha)
-
-
-def curvature_energy(f: np.ndarray) -> float:
-    """The image's curvature energy ``sum |d_m|`` (grey levels), which :func:`curvature_filter` never raises."""
-    return float(np.abs(nearest_plane_step(f)).sum())
-
-
-def noise_sigma(image: np.ndarray) -> float:
-    """Robust pixel noise (same units as ``image``): MAD of horizontal neighbour differences / (0.6745 sqrt 2)."""
-    diff = np.diff(np.asarray(image, dtype=np.float64), axis=1).ravel()
-    return float(np.median(np.abs(diff - np.median(diff))) / (0.6745 * math.sqrt(2.0)))
-
-
-def curvature_filter(image: np.ndarray, threshold: float | None = None, iterations: int = 3,
-                     alpha: float = 1.0, threshold_sigma: float = 3.0) -> np.ndarray:
-    """Seed 001's improved Gaussian-curvature filter (module docstring): float64 (H, W) from a 2-D image.
-
-    ``threshold``: the energy gate T in the image's units (None: ``threshold_sigma`` times the image's noise
-    sigma); ``iterations``: passes over the image; ``alpha``: exponent of the edge-preserving potential, 1 to 2.
-    """
-    f = checks.finite("image", image).astype(np.float64, copy=True)
-    if f.ndim != 2 or min(f.shape) < 3:
-        raise ValueError(f"image must be a 2-D array of at least 3 x 3 pixels, got shape {f.shape}")
-    iterations = checks.integer("iterations", iterations, 0, 1000)
-    alpha = checks.in_range("alpha", alpha, 1.0, 2.0)
-    if threshold is None:
-        t = checks.non_negative("threshold_sigma", threshold_sigma) * noise_sigma(f)
-    else:
-        t = checks.non_negative("threshold", threshold)
-    h, w = f.shape
-    window = np.arange(-2, 3)
-    for _ in range(iterations):
-        for oy in range(3):
-            for ox in range(3):
-                grid = (len(range(oy, h, 3)), len(range(ox, w, 3)))
-                padded = np.pad(f, 2, mode="edge")
-                nb = _views(padded, 2, grid, (oy, ox), 3)
-                step = _step(nb)
-                gy, gx = np.nonzero((_energy(nb, step, alpha) >= t) & (step != 0.0))
-                if len(gy) == 0:
-                    continue
-                s = step[gy, gx]
-                y, x = oy + 3 * gy, ox + 3 * gx
-                trial = f.copy()
-                trial[y, x] += s
-                # sum |d_m| over each candidate's 3 x 3 window before and after: 5 x 5 patches of the padded
-                # images (no other pixel of the subset lies within 2 px, replicated borders included).
-                rows = (y[:, None] + window + 2)[:, :, None]
-                cols = (x[:, None] + window + 2)[:, None, :]
-                before = padded[rows, cols]
-                after = np.pad(trial, 2, mode="edge")[rows, cols]
-                inside = (((y[:, None] + window[1:-1]) % h == y[:, None] + window[1:-1])[:, :, None]
-                          & ((x[:, None] + window[1:-1]) % w == x[:, None] + window[1:-1])[:, None, :])
-                change = [(np.abs(_step(_views(p, 1, (3, 3)))) * inside).sum(axis=(1, 2)) for p in (before, after)]
-                keep = change[1] <= change[0]
-                f[y[keep], x[keep]] = trial[y[keep], x[keep]]
-    return f
-
-
-def centre_kernel(step, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """The motion kernel (normalised, centred) of a star at head ``head``'s principal point over the exposure
-    ``time_s -/+ exposure_s / 2``, from the step's gyro samples (``starenv.psf``), and its extent (2,) px (x, y)."""
-    camera = step.cameras[head]
-    path = exposure_path(step, head, (camera.cx, camera.cy))
-    kernel, _ = path_kernel(path, sigma_px)
-    return kernel, np.ptp(path, axis=0)
 
 
 def window_centroids(image: np.ndarray, boxes: np.ndarray, floor_fraction: float = 0.0) -> np.ndarray:
@@ -244,7 +111,7 @@ class CurvatureRLDeblurrer:
     watched), ``psf_sigma_px`` (the sensor's spot, px, that the still stars are drawn with; None: the calibrated
     camera's).  :meth:`restore` gives the seed's restored image (the RL estimate, from the denoised frame);
     :meth:`deblur` returns the raw frame with each trail replaced by its still star
-    (:func:`starenv.agents.deblur.resharpen` of that estimate): the output keeps the raw frame's noise, which the
+    (:func:`starenv.agents.restore.frame.resharpen` of that estimate): the output keeps the raw frame's noise, which the
     detector models, instead of RL's amplified noise, so the detector's
     precision holds (float64 DN).  Both set ``last_info``.
     """

@@ -8,11 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from starenv import checks
-from starenv.agents.curvature import centre_kernel
-from starenv.agents.deblur import resharpen, sigma_for, spot_sigma
-from starenv.agents.neural.ebpnn import EnsembleNet
-from starenv.agents.neural.features import initial_estimate, sumfc
-from starenv.restoration import richardson_lucy
+from starenv.agents.restore.algorithms import resharpen, richardson_lucy
+from starenv.agents.restore.iteration.ebpnn import EnsembleNet
+from starenv.agents.restore.iteration.features import initial_estimate, sumfc
+from starenv.agents.restore.kernels import centre_kernel, sigma_for, spot_sigma
 
 WEIGHTS = Path(__file__).with_name("iteration_net.npz")
 KERNEL_SIGMA_PX = 0.5  # the Gaussian each kernel sample is drawn with, in training and here
@@ -22,18 +21,19 @@ class IterationNetDeblurrer:
     """Full-frame Richardson-Lucy with the frame centre's gyro kernel (seed 000's single kernel per image) and the
     iteration count the EBPNN predicts from the kernel's SUMFC (rounded, clipped to [1, ``max_iterations``]).
 
-    ``weights``: an ``.npz`` from ``python -m starenv.agents.neural.train`` (default: the shipped
+    ``weights``: an ``.npz`` from ``python -m starenv.agents.restore.iteration.train`` (default: the shipped
     ``iteration_net.npz`` beside this module).  The frame's median is the background term; RL starts from the frame
     less that level, as in training.  Returns the frame with each trail replaced by its still star
-    (:func:`starenv.agents.deblur.resharpen` of the RL estimate: the frame keeps its own noise, which the detector
-    models, instead of RL's amplified noise), the still star drawn with the sensor's spot ``psf_sigma_px`` (px; None:
-    the calibrated camera's); float64 DN.  Sets ``last_info`` (``iterations``, ``sumfc``, timings in s).
+    (:func:`starenv.agents.restore.algorithms.resharpen` of the RL estimate: the frame keeps its own noise, which the
+    detector models, instead of RL's amplified noise), the still star drawn with the sensor's spot ``psf_sigma_px`` (px;
+    None: the calibrated camera's); float64 DN.  Sets ``last_info`` (``iterations``, ``sumfc``, timings in s).
     """
 
     def __init__(self, weights: str | Path | None = None, max_iterations: int = 300, psf_sigma_px: float | None = None):
         path = WEIGHTS if weights is None else Path(weights)
         if not path.is_file():
-            raise ValueError(f"weights: no file {path}; make one with python -m starenv.agents.neural.train --out PATH")
+            raise ValueError(f"weights: no file {path}; make one with "
+                             "python -m starenv.agents.restore.iteration.train --out PATH")
         self.net = EnsembleNet.load(path)
         self.max_iterations = checks.integer("max_iterations", max_iterations, 1, 100000)
         self.psf_sigma_px = spot_sigma(psf_sigma_px)

@@ -22,7 +22,7 @@ import numpy as np
 from scipy import fft
 
 from starenv import checks
-from starenv.restoration import richardson_lucy
+from starenv.agents.restore.algorithms import richardson_lucy
 
 SUMFC_GRID = 256
 INITIAL_FLOOR_DN = 0.01  # RL's starting estimate on pixels at or below the background level

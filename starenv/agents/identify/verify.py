@@ -19,35 +19,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import binom
 
-from starenv.agents.base import Stars
-from starenv.optics import Camera
-from starenv.sky import StarCatalog
-
-
-def body_vectors(stars: list[Stars], cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
-    """Pooled detections of all heads: body-frame unit vectors (n, 3) and each one's head (n,)."""
-    if len(stars) != len(cameras):
-        raise ValueError(f"stars must hold one Stars per camera ({len(cameras)}), got {len(stars)}")
-    vectors = [cam.mounting.inv().apply(cam.unproject(s.xy)) if len(s) else np.zeros((0, 3))
-               for s, cam in zip(stars, cameras, strict=True)]
-    heads = np.repeat(np.arange(len(stars)), [len(s) for s in stars])
-    return (np.concatenate(vectors) if vectors else np.zeros((0, 3))), heads
-
-
-def labelled(stars: list[Stars], ids: np.ndarray) -> list[Stars]:
-    """Copies of ``stars`` with the pooled catalogue ids ``ids`` (heads in order; -1 unidentified)."""
-    out, start = [], 0
-    for s in stars:
-        out.append(Stars(s.xy.copy(), s.flux.copy(), ids[start:start + len(s)].copy()))
-        start += len(s)
-    return out
+from starenv.agents.solve import wahba_svd
+from starenv.sim.optics import Camera
+from starenv.sim.sky import StarCatalog
 
 
 def wahba(body: np.ndarray, inertial: np.ndarray) -> Rotation:
     """The rotation A (inertial -> body) minimising sum |b - A r|^2 over unit-vector pairs (n, 3), n >= 2 (SVD)."""
-    u, _, vt = np.linalg.svd(body.T @ inertial)
-    u[:, 2] *= np.linalg.det(u @ vt)
-    return Rotation.from_matrix(u @ vt)
+    return Rotation.from_matrix(wahba_svd(body, inertial))
 
 
 @dataclass

@@ -12,17 +12,53 @@ pixel noise, each head's drop channel and the gyro, so adding a head does not ch
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.detector import Detector
-from starenv.drops import DropChannel
-from starenv.frames import ARCSEC
-from starenv.gyro import Gyro, GyroSamples
-from starenv.render import DETECTABLE_SNR, StarRenderer, StarTruth, still_image
-from starenv.scenario import Scenario
-from starenv.sky import StarCatalog, load_catalog
+from starenv.sim.conventions import ARCSEC
+from starenv.sim.drops import DropChannel, DropModel
+from starenv.sim.gyro import Gyro, GyroSamples, GyroSpec
+from starenv.sim.imager import Detector, DetectorSpec
+from starenv.sim.motion import Trajectory
+from starenv.sim.optics import Camera
+from starenv.sim.photometry import Photometry, StrayLight
+from starenv.sim.render import DETECTABLE_SNR, StarRenderer, StarTruth, still_image
+from starenv.sim.sky import StarCatalog, load_catalog
+
+
+@dataclass
+class HeadSpec:
+    """One camera head: the true camera, what the sensor believes it is, PSF, throughput, detector, stray light."""
+
+    name: str
+    camera: Camera
+    calibrated: Camera
+    photometry: Photometry
+    detector: DetectorSpec
+    stray_light: StrayLight
+
+    @property
+    def psf_sigma_px(self) -> float:
+        """The true spot's Gaussian sigma (px); the calibrated camera carries the same value."""
+        return self.camera.psf_sigma_px
+
+class SensorSpec(Protocol):
+    """What the sensor is built from (a loaded :class:`~starenv.scenario.Scenario` is one): timing (s, Hz), the
+    simulated sky's magnitude limit, epoch (Julian year) and sky brightness (mag/arcsec^2), the seed, the true
+    trajectory, the gyro, the drop model and the heads."""
+
+    seed: int
+    frame_rate_hz: float
+    exposure_s: float
+    mag_limit: float
+    epoch: float
+    sky_mag_per_arcsec2: float
+    trajectory: Trajectory
+    gyro: GyroSpec
+    drops: DropModel
+    heads: list[HeadSpec]
 
 
 @dataclass
@@ -50,9 +86,9 @@ class Frame:
 
 
 class StarSensor:
-    """Steps a :class:`~starenv.scenario.Scenario`: call :meth:`reset` with a seed, then :meth:`next_frame`."""
+    """Steps a :class:`SensorSpec` (e.g. a scenario): call :meth:`reset` with a seed, then :meth:`next_frame`."""
 
-    def __init__(self, scenario: Scenario, catalog: StarCatalog | None = None):
+    def __init__(self, scenario: SensorSpec, catalog: StarCatalog | None = None):
         """``catalog``: the sky to render (default: the scenario's, Hp <= ``mag_limit`` at its ``epoch``); dataset
         generators pass an edited one (stars removed, false stars added, positions or magnitudes perturbed)."""
         self.scenario = scenario

@@ -18,7 +18,7 @@ Two models:
   non-uniform motion and the field-angle stretching are all in it.
 
 :func:`path_kernel` rasterises a path into a normalised kernel with the same pixel-integrated Gaussian as the
-renderer (:func:`starenv.render.band_fractions`).
+renderer (:func:`starenv.sim.render.band_fractions`).
 """
 
 from __future__ import annotations
@@ -30,9 +30,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from starenv import checks
-from starenv.agents.base import GyroRecord
-from starenv.optics import Camera
-from starenv.render import band_fractions
+from starenv.agents.base import StepInput
+from starenv.sim.gyro import GyroSamples
+from starenv.sim.optics import Camera
+from starenv.sim.render import band_fractions
 
 MAX_STEP_PX = 0.5  # largest image motion (px) between two consecutive path samples when n_samples is None
 MAX_SAMPLES = 20001
@@ -118,7 +119,7 @@ def _linear_inputs(xy_mid, rate, rate_shape: tuple[int, ...], exposure_s: float)
     return xy, r, t
 
 
-def gyro_rotation(gyro: GyroRecord, times: np.ndarray, t_ref: float) -> Rotation:
+def gyro_rotation(gyro: GyroSamples, times: np.ndarray, t_ref: float) -> Rotation:
     """Body rotations ``D(t)`` with ``A(t) = D(t) A(t_ref)``, from the gyro's average rates (one Rotation per time).
 
     Sample ``i`` holds the average body rate over ``(t_i - dt, t_i]``; inside that interval the rate is taken as
@@ -149,7 +150,7 @@ def gyro_rotation(gyro: GyroRecord, times: np.ndarray, t_ref: float) -> Rotation
     return at(times) * at(np.array([float(t_ref)])).inv()
 
 
-def star_paths(camera: Camera, gyro: GyroRecord, t_start: float, t_end: float, xy_mid,
+def star_paths(camera: Camera, gyro: GyroSamples, t_start: float, t_end: float, xy_mid,
                n_samples: int | None = None, line_time_s: float = 0.0) -> np.ndarray:
     """Image paths (n, m, 2) distorted px of ``n`` stars over the exposure ``[t_start, t_end]`` (s).
 
@@ -240,3 +241,41 @@ def path_kernel(path, sigma_px: float, xy_mid=None) -> tuple[np.ndarray, np.ndar
     kernel = np.einsum("ki,kj->ij", wy, wx)  # (not BLAS: small products are slow through threaded OpenBLAS)
     kernel /= kernel.sum()
     return kernel, half.astype(np.int64)
+
+
+def spot_sigma(option: float | None) -> float | None:
+    """A deblurrer's ``psf_sigma_px`` option checked: None (the calibrated camera's ``psf_sigma_px``) or px."""
+    return None if option is None else checks.in_range("psf_sigma_px", option, 0.1, 20.0, unit="px")
+
+
+def sigma_for(option: float | None, camera: Camera) -> float:
+    """The spot sigma (px) a deblurrer draws still stars with: its option, else the calibrated camera's."""
+    return camera.psf_sigma_px if option is None else option
+
+
+def window(step: StepInput) -> tuple[float, float]:
+    half = 0.5 * float(step.exposure_s)
+    return step.time_s - half, step.time_s + half
+
+
+def exposure_path(step: StepInput, head: int, xy_mid=None) -> np.ndarray:
+    """The path (m, 2) px over the exposure of a star at ``xy_mid`` (px) at mid-exposure on head ``head``, from the
+    step's gyro samples; None: the centre of the frame."""
+    cam = step.cameras[head]
+    t0, t1 = window(step)
+    xy = [(cam.width - 1) / 2.0, (cam.height - 1) / 2.0] if xy_mid is None else xy_mid
+    return star_paths(cam, step.gyro, t0, t1, np.reshape(xy, (1, 2)))[0]
+
+
+def frame_kernel(step: StepInput, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel of a star at the centre of head ``head``'s frame (a :func:`path_kernel` result)."""
+    return path_kernel(exposure_path(step, head), sigma_px)
+
+
+def centre_kernel(step, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The motion kernel (normalised, centred) of a star at head ``head``'s principal point over the exposure
+    ``time_s -/+ exposure_s / 2``, from the step's gyro samples (:func:`star_paths`), and its extent (2,) px (x, y)."""
+    camera = step.cameras[head]
+    path = exposure_path(step, head, (camera.cx, camera.cy))
+    kernel, _ = path_kernel(path, sigma_px)
+    return kernel, np.ptp(path, axis=0)

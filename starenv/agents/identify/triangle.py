@@ -9,7 +9,7 @@ pair of them closer than the largest head's field diagonal, sorted by angular di
 ``tolerance_px`` (through the plate scale), the catalogue pairs of each edge; catalogue triangles whose three pairs
 close (A-B, A-C, B-C) and whose handedness matches the detections' (a mirror image is not a rotation) are
 candidate matches, the ``max_candidates`` with the smallest edge residuals first.  Each gives an attitude (Wahba's
-problem on the three stars), verified against the whole catalogue (:mod:`starenv.agents.verify`): the first one
+problem on the three stars), verified against the whole catalogue (:mod:`starenv.agents.identify.verify`): the first one
 whose false-match probability, times the candidates tried, is below ``max_false`` with at least ``min_matches``
 pairs labels all heads' detections; at most ``max_hypotheses`` are verified per frame.
 Ids are HIP numbers; -1 unidentified.
@@ -23,10 +23,11 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.agents.base import Stars
-from starenv.agents.verify import body_vectors, labelled, verify, wahba
-from starenv.optics import Camera
-from starenv.sky import StarCatalog
+from starenv.agents.base import StarMeasurements
+from starenv.agents.identify.geometry import body_vectors, with_ids
+from starenv.agents.identify.verify import verify, wahba
+from starenv.sim.optics import Camera
+from starenv.sim.sky import StarCatalog
 
 _MERGE_PX = 3.0  # stars closer than this (px) blend on the sensor: neither is used in the database
 
@@ -100,8 +101,8 @@ class TriangleIdentifier:
         order = np.argsort(residual, kind="stable")[: self.max_candidates]
         return [tuple(int(x) for x in tri[k]) for k in order]
 
-    def identify(self, stars: list[Stars], cameras: list[Camera], prior: Rotation | None = None,
-                 images: list[np.ndarray | None] | None = None) -> list[Stars]:
+    def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
+                 images: list[np.ndarray | None] | None = None) -> list[StarMeasurements]:
         """Label all heads' detections (HIP; -1 unidentified); ``prior`` and ``images`` are not used."""
         if self.catalog is None:
             raise RuntimeError("call reset(cameras, catalog) before identify")
@@ -122,7 +123,7 @@ class TriangleIdentifier:
                     attitude = wahba(body[rows], self.catalog.unit[list(cand)])
                     v = verify(attitude, body, heads, cameras, self.catalog, self.radius_px, given=3)
                     if v.matched >= self.min_matches and v.p_false * tried <= self.max_false:
-                        return labelled(stars, v.ids)
+                        return with_ids(stars, v.ids)
                     if tried >= self.max_hypotheses:
-                        return labelled(stars, np.full(len(body), -1, dtype=np.int64))
-        return labelled(stars, np.full(len(body), -1, dtype=np.int64))
+                        return with_ids(stars, np.full(len(body), -1, dtype=np.int64))
+        return with_ids(stars, np.full(len(body), -1, dtype=np.int64))

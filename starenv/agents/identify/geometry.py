@@ -1,0 +1,78 @@
+"""Geometry shared by the identifiers: pooled body-frame vectors of all heads, labelling, pattern edges, the
+separation under which two stars are one on the sensor."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from starenv.agents.base import StarMeasurements
+from starenv.sim.optics import Camera
+
+MERGE_PX = 2.0  # a star closer than this (px, coarsest head) to a brighter one is taken as part of it
+EDGE_FROM, EDGE_TO = np.triu_indices(4, 1)  # the six edges of a pattern: 01, 02, 03, 12, 13, 23
+STAR_ORDERS = np.array(list(itertools.permutations(range(4))))  # (24, 4)
+EDGE_OF = np.zeros((4, 4), dtype=np.intp)  # edge number of a star pair
+EDGE_OF[EDGE_FROM, EDGE_TO] = EDGE_OF[EDGE_TO, EDGE_FROM] = np.arange(6)
+ORDER_EDGES = EDGE_OF[STAR_ORDERS[:, EDGE_FROM], STAR_ORDERS[:, EDGE_TO]]  # (24, 6) edges of a reordered pattern
+IDENTITY = np.eye(3)
+
+
+def chord(angle_rad: float) -> float:
+    """Straight-line distance between two unit vectors ``angle_rad`` apart."""
+    return 2.0 * math.sin(min(angle_rad, math.pi) / 2.0)
+
+
+def pattern_edges(vectors: np.ndarray) -> np.ndarray:
+    """The six pairwise angles (rad), ordered 01, 02, 03, 12, 13, 23, of unit-vector quadruples (..., 4, 3)."""
+    chord = np.linalg.norm(vectors[..., EDGE_FROM, :] - vectors[..., EDGE_TO, :], axis=-1)
+    return 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0))
+
+
+def body_vectors(stars: list[StarMeasurements], cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    """Pooled detections of all heads (heads in order): body-frame unit vectors (n, 3) and the head of each (n,)."""
+    if len(stars) != len(cameras):
+        raise ValueError(f"stars must hold one StarMeasurements per camera ({len(cameras)}), got {len(stars)}")
+    vectors = [cam.unproject(s.xy) @ cam.mounting.as_matrix() for s, cam in zip(stars, cameras, strict=True)]
+    heads = np.repeat(np.arange(len(stars)), [len(s) for s in stars])
+    return np.concatenate(vectors) if vectors else np.zeros((0, 3)), heads
+
+
+def with_ids(stars: list[StarMeasurements], ids: np.ndarray) -> list[StarMeasurements]:
+    """Copies of ``stars`` with catalogue ids from the pooled id array ``ids`` (heads in order)."""
+    out, start = [], 0
+    for s in stars:
+        out.append(StarMeasurements(s.xy.copy(), s.flux.copy(), ids[start : start + len(s)].copy()))
+        start += len(s)
+    return out
+
+
+def resolvable(unit: np.ndarray, magnitude: np.ndarray, merge_rad: float) -> np.ndarray:
+    """Mask (n,) of the stars with no brighter star (or equal one listed earlier) within ``merge_rad``: a sensor sees
+    each pair closer than that as one star, the brighter."""
+    pairs = cKDTree(unit).query_pairs(chord(merge_rad), output_type="ndarray")
+    a, b = pairs[:, 0], pairs[:, 1]
+    fainter = np.where((magnitude[b] > magnitude[a]) | ((magnitude[b] == magnitude[a]) & (b > a)), b, a)
+    keep = np.ones(len(unit), dtype=bool)
+    keep[fainter] = False
+    return keep
+
+
+def closest_per_star(rows: np.ndarray, star: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``rows`` (ascending) and their stars, of rows paired with star ``star[row]`` at ``distance[row]`` (arrays over
+    all rows); a star paired with several rows keeps only the closest."""
+    stars = star[rows]
+    if len(set(stars.tolist())) < len(stars):
+        order = np.argsort(distance[rows], kind="stable")
+        _, first = np.unique(stars[order], return_index=True)
+        keep = np.sort(order[first])
+        rows, stars = rows[keep], stars[keep]
+    return rows, stars
+
+
+def same_matches(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether two matchings (detections, star rows) are the same."""
+    return a[0].tolist() == b[0].tolist() and a[1].tolist() == b[1].tolist()

@@ -10,10 +10,11 @@
    compared with ``max_false``; ``min_matches`` pairs are needed.  The first verified hypothesis labels the
    detections; when none verifies, nothing is identified (a wrong main star never becomes an attitude).
 
-The network only knows the frames it was trained on: the camera must have the training field of view (checked at
-:meth:`reset`) and the boresight should sit near a navigation star of its classes (the paper's protocol), in the
-sky region the weights cover.  The frame reaches the identifier through ``images`` (each head's frame as the
-detector saw it); without it nothing is identified.
+The candidates' directions come from Hipparcos itself, the verification uses the catalogue handed to
+:meth:`reset`.  The network only knows the frames it was trained on: the camera must have the training field of
+view (checked at :meth:`reset`) and the boresight should sit near a navigation star of its classes (the paper's
+protocol), in the sky region the weights cover.  The frame reaches the identifier through ``images`` (each head's
+frame as the detector saw it, which the pipeline passes); without it nothing is identified.
 """
 
 from __future__ import annotations
@@ -32,10 +33,11 @@ from starenv.agents.identify.verify import verify
 from starenv.agents.learned.seed002 import Seed002Config, Seed002Net
 from starenv.sim.conventions import pointing, unit_to_radec
 from starenv.sim.optics import Camera
-from starenv.sim.sky import StarCatalog
+from starenv.sim.sky import StarCatalog, load_catalog
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "seed002_orion"
+CLASS_MAG_LIMIT = 8.0  # the navigation stars' directions come from Hipparcos down to this Hp (classes are brighter)
 
 
 def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> tuple[Seed002Net, dict]:
@@ -77,12 +79,14 @@ class NetworkIdentifier:
         if trained is not None and abs(fov - trained[0]) > 0.02 * trained[0]:
             raise ValueError(f"NetworkIdentifier: head 0's field is {fov:.2f} deg, the network was trained on "
                              f"{trained[0]:.2f} deg")
-        missing = np.setdiff1d(self.classes, catalog.hip)
+        sky = load_catalog(CLASS_MAG_LIMIT, catalog.epoch)
+        missing = np.setdiff1d(self.classes, sky.hip)
         if len(missing):
-            raise ValueError(f"NetworkIdentifier: {len(missing)} navigation stars (e.g. HIP {missing[0]}) are not in "
-                             "the catalogue handed over; give a catalogue down to the classes' magnitude")
+            raise ValueError(f"NetworkIdentifier: {len(missing)} classes (e.g. HIP {missing[0]}) are not Hipparcos "
+                             f"stars brighter than Hp {CLASS_MAG_LIMIT}")
+        self.class_unit = dict(zip(self.classes.tolist(), sky.unit[np.searchsorted(sky.hip, self.classes)],
+                                   strict=True))
         self.catalog = catalog
-        self._rows = np.searchsorted(catalog.hip, self.classes)
 
     @torch.no_grad()
     def rank(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -108,8 +112,7 @@ class NetworkIdentifier:
         det = stars[0].xy
         hypotheses = []
         for hip in ranked[: self.top_k]:
-            unit = self.catalog.unit[np.searchsorted(self.catalog.hip, hip)]
-            ra, dec = unit_to_radec(unit)
+            ra, dec = unit_to_radec(self.class_unit[int(hip)])
             cam0 = pointing(float(ra), float(dec), 0.0)
             for roll in self._rolls(cam, cam0, det):
                 hypotheses.append((hip, cam.mounting.inv() * pointing(float(ra), float(dec), roll)))

@@ -112,8 +112,11 @@ def score(stars, cameras, catalog, nav_hip, nav_unit, params, truth):
     return main, correct >= 3 and wrong == 0, wrong > 0
 
 
+SWEEPS = ("two", "three", "noise")
+
+
 def run(frames: int, seed_offset: int, names: tuple[str, ...] = AGENTS, network_weights: str | None = None,
-        log=print) -> dict:
+        sweeps: tuple[str, ...] = SWEEPS, log=print) -> dict:
     spec0 = test_spec()
     sc = spec0.load_scenario()
     cam = sc.heads[0].calibrated
@@ -123,8 +126,10 @@ def run(frames: int, seed_offset: int, names: tuple[str, ...] = AGENTS, network_
     agents = identifiers(names, network_weights)
     for agent in agents.values():
         agent.reset([cam], catalog)
-    conditions = [("two", w, 0.0) for w in range(0, 11, 2)] + [("three", w, 0.0) for w in (2, 6, 10, 12)]
-    conditions += [("two", w, s / PAPER_PX_PER_OURS) for w in (1, 3, 5, 7) for s in (1.0, 5.0)]
+    conditions = [("two", w, 0.0) for w in range(0, 11, 2)] if "two" in sweeps else []
+    conditions += [("three", w, 0.0) for w in (2, 6, 10, 12)] if "three" in sweeps else []
+    conditions += [("two", w, s / PAPER_PX_PER_OURS) for w in (1, 3, 5, 7) for s in (1.0, 5.0)] if "noise" in sweeps \
+        else []
     results = []
     times: dict[str, list[float]] = {k: [] for k in ["detect", *agents]}
     for mode, rate, sigma in conditions:
@@ -222,6 +227,7 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=0, help="first frame index")
     p.add_argument("--weights", default=None, help="network run folder (default: the shipped weights)")
     p.add_argument("--agents", default=",".join(AGENTS), help=f"comma-separated subset of {', '.join(AGENTS)}")
+    p.add_argument("--sweeps", default=",".join(SWEEPS), help=f"comma-separated subset of {', '.join(SWEEPS)}")
     p.add_argument("--out", default=None, help="write the results as JSON here")
     p.add_argument("--tables", nargs="+", default=None, metavar="FILE.json",
                    help="print the markdown tables of earlier --out files (merged) and exit")
@@ -234,7 +240,10 @@ def main() -> int:
     unknown = sorted(set(names) - set(AGENTS))
     if unknown:
         p.error(f"--agents: unknown {', '.join(unknown)}; choose from {', '.join(AGENTS)}")
-    res = run(args.frames, args.seed, names, args.weights)
+    sweeps = tuple(args.sweeps.split(","))
+    if set(sweeps) - set(SWEEPS):
+        p.error(f"--sweeps: choose from {', '.join(SWEEPS)}")
+    res = run(args.frames, args.seed, names, args.weights, sweeps)
     res["wall_s"] = round(time.perf_counter() - t0, 1)
     print(json.dumps(res["timing"]), res["paper_size_network_ms"], res["wall_s"])
     if args.out:

@@ -54,11 +54,13 @@ class NetworkIdentifier:
 
     ``weights``: a run folder of ``starenv train`` (default: the shipped seed002_orion weights); ``top_k``: main-star
     candidates tried; ``rolls``: roll hypotheses per candidate; ``radius_px``: pairing radius (px);
-    ``min_matches``: pairs needed; ``max_false``: largest accepted false-match probability (all hypotheses).
+    ``min_matches``: pairs needed; ``max_false``: largest accepted false-match probability (all hypotheses);
+    ``threads``: torch's CPU thread count, set for the whole process (one frame at a time: one thread is fastest,
+    and two threads on a loaded 2-core machine made a forward pass 60 times slower; None leaves torch's setting).
     """
 
     def __init__(self, weights: str | Path = DEFAULT_WEIGHTS, device: str = "cpu", top_k: int = 3, rolls: int = 3,
-                 radius_px: float = 2.0, min_matches: int = 5, max_false: float = 1e-3, threads: int | None = None):
+                 radius_px: float = 2.0, min_matches: int = 5, max_false: float = 1e-3, threads: int | None = 1):
         if top_k < 1 or rolls < 1 or min_matches < 2:
             raise ValueError(f"top_k, rolls >= 1 and min_matches >= 2 expected, got {top_k}, {rolls}, {min_matches}")
         if not radius_px > 0 or not 0 < max_false < 1:

@@ -10,7 +10,8 @@ uniform, rate two-axis (|(wx, wy)| = w in a uniform direction, wz = 0) or three-
 signs, resultant w), sensor noise of paper_002's detector, no false or missing stars.  The identifiers get the
 ``MAX_STARS`` brightest detections.  Position noise shifts each
 star by a Gaussian of sigma px per axis on this sensor (the paper's 1024^2 px are 8 times smaller; the table gives
-both).  Each frame: one detection (CentroidDetector, iwcog, the scenario's PSF), then each identifier.
+both); magnitude noise adds a Gaussian (mag) to every star's Hp.  Each frame: one detection (CentroidDetector,
+iwcog, the scenario's PSF), then each identifier.
 
 Scores per frame (``main``: the paper's metric, the boresight star named correctly):
 * network top-1: the network's best class is the true main star (the paper's metric for its method);
@@ -54,11 +55,11 @@ MAX_STARS = 30  # detections handed to the identifiers (the brightest)
 LIS_PATTERN_STARS = 8  # lost in space forms patterns from this many brightest (default 12: 30 s a dense frame here)
 
 
-def test_spec(position_sigma_px: float = 0.0):
+def test_spec(position_sigma_px: float = 0.0, magnitude_sigma: float = 0.0):
     base = load_spec(SPEC).to_dict()
     base.update(name="seed002_test", seed=2002, samples=1)
     base["pointing"] = {**base["pointing"], "roll_step_deg": 0.0}
-    base["stars"] = {"variants": ["clean"], "position_sigma_px": position_sigma_px}
+    base["stars"] = {"variants": ["clean"], "position_sigma_px": position_sigma_px, "magnitude_sigma": magnitude_sigma}
     return load_spec(base)
 
 
@@ -112,7 +113,7 @@ def score(stars, cameras, catalog, nav_hip, nav_unit, params, truth):
     return main, correct >= 3 and wrong == 0, wrong > 0
 
 
-SWEEPS = ("two", "three", "noise")
+SWEEPS = ("two", "three", "noise", "magnitude")
 
 
 def run(frames: int, seed_offset: int, names: tuple[str, ...] = AGENTS, network_weights: str | None = None,
@@ -126,14 +127,16 @@ def run(frames: int, seed_offset: int, names: tuple[str, ...] = AGENTS, network_
     agents = identifiers(names, network_weights)
     for agent in agents.values():
         agent.reset([cam], catalog)
-    conditions = [("two", w, 0.0) for w in range(0, 11, 2)] if "two" in sweeps else []
-    conditions += [("three", w, 0.0) for w in (2, 6, 10, 12)] if "three" in sweeps else []
-    conditions += [("two", w, s / PAPER_PX_PER_OURS) for w in (1, 3, 5, 7) for s in (1.0, 5.0)] if "noise" in sweeps \
-        else []
+    conditions = [("two", w, 0.0, 0.0) for w in range(0, 11, 2)] if "two" in sweeps else []
+    conditions += [("three", w, 0.0, 0.0) for w in (2, 6, 10, 12)] if "three" in sweeps else []
+    if "noise" in sweeps:
+        conditions += [("two", w, s / PAPER_PX_PER_OURS, 0.0) for w in (1, 3, 5, 7) for s in (1.0, 5.0)]
+    if "magnitude" in sweeps:
+        conditions += [("two", w, 0.0, m) for w in (1, 3, 5, 7) for m in (0.2, 1.0)]
     results = []
-    times: dict[str, list[float]] = {k: [] for k in ["detect", *agents]}
-    for mode, rate, sigma in conditions:
-        spec = test_spec(sigma)
+    times: dict[str, list[float]] = {k: [] for k in ["detect", *agents, *(["network_forward"] * ("network" in agents))]}
+    for mode, rate, sigma, mag_sigma in conditions:
+        spec = test_spec(sigma, mag_sigma)
         tally = {k: [0, 0, 0] for k in agents}
         top1 = 0
         for i in range(frames):
@@ -152,12 +155,14 @@ def run(frames: int, seed_offset: int, names: tuple[str, ...] = AGENTS, network_
                 if name == "network":
                     out = agent.identify([found], [cam], None, images=[head.image])
                     top1 += int(agent.last["ranked"][0] == nav_hip[params["main"]])
+                    times["network_forward"].append(agent.last["forward_s"])
                 else:
                     out = agent.identify([found], [cam], prior if name == "tracking" else None)
                 times[name].append(time.perf_counter() - t)
                 for k, flag in enumerate(score(out, [cam], catalog, nav_hip, nav_unit, params, truth)):
                     tally[name][k] += int(flag)
         row = {"mode": mode, "rate_dps": rate, "sigma_px": sigma, "sigma_paper_px": sigma * PAPER_PX_PER_OURS,
+               "magnitude_sigma": mag_sigma,
                "frames": frames, "network_top1": top1 / frames if "network" in agents else None,
                **{f"{k}_{m}": v[j] / frames for k, v in tally.items() for j, m in enumerate(("main", "solved",
                                                                                                "wrong"))}}
@@ -196,22 +201,23 @@ def tables(files: list[str]) -> str:
         res = json.loads(Path(f).read_text(encoding="utf-8"))
         timing.update(res["timing"])
         for r in res["results"]:
-            key = (r["mode"], r["rate_dps"], r["sigma_px"])
+            key = (r["mode"], r["rate_dps"], r["sigma_px"], r.get("magnitude_sigma", 0.0))
             rows.setdefault(key, {}).update({k: v for k, v in r.items() if v is not None})
     names = [n for n in AGENTS if any(f"{n}_main" in r for r in rows.values())]
     pct = lambda v: "" if v is None else f"{100 * v:.0f}"  # noqa: E731
     out = []
-    for title, sel in (("two-axis rate, no position noise", lambda k: k[0] == "two" and k[2] == 0),
+    for title, sel in (("two-axis rate, no position noise", lambda k: k[0] == "two" and k[2] == 0 == k[3]),
                        ("three-axis rate (equal components), no position noise", lambda k: k[0] == "three" or (
-                           k[0] == "two" and k[1] == 0 and k[2] == 0)),
-                       ("two-axis rate with position noise", lambda k: k[2] > 0)):
+                           k[0] == "two" and k[1] == 0 and k[2] == 0 == k[3])),
+                       ("two-axis rate with position noise", lambda k: k[2] > 0),
+                       ("two-axis rate with magnitude noise", lambda k: k[3] > 0)):
         keys = sorted(k for k in rows if sel(k))
-        head = ["w (deg/s)", "sigma (px here / paper px)", "network top-1"]
+        head = ["w (deg/s)", "sigma (px here / paper px)", "sigma (mag)", "network top-1"]
         head += [f"{n} main / solved / wrong" for n in names]
         out += [f"**{title}** (% of frames)", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for k in keys:
             r = rows[k]
-            cells = [f"{k[1]:g}", f"{k[2]:.3g} / {r['sigma_paper_px']:g}", pct(r.get("network_top1"))]
+            cells = [f"{k[1]:g}", f"{k[2]:.3g} / {r['sigma_paper_px']:g}", f"{k[3]:g}", pct(r.get("network_top1"))]
             cells += [f"{pct(r.get(f'{n}_main'))} / {pct(r.get(f'{n}_solved'))} / {pct(r.get(f'{n}_wrong'))}"
                       for n in names]
             out.append("| " + " | ".join(cells) + " |")

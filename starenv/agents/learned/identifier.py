@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -108,7 +109,9 @@ class NetworkIdentifier:
         self.last = {"ranked": None, "main": None, "verified": False}
         if images is None or images[0] is None:
             return none
+        t0 = time.perf_counter()
         ranked, prob = self.rank(images[0])
+        self.last["forward_s"] = time.perf_counter() - t0
         self.last["ranked"], self.last["prob"] = ranked[: self.top_k], prob[: self.top_k]
         cam = cameras[0]
         det = stars[0].xy

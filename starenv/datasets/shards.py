@@ -12,6 +12,7 @@ whose meta carries the spec's digest.
 
 from __future__ import annotations
 
+import importlib.metadata
 import io
 import json
 import os
@@ -32,9 +33,11 @@ _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
 
 def _version() -> str:
-    from starenv import __version__
-
-    return __version__
+    """The installed project's version (``unknown`` when run from a checkout that was never installed)."""
+    try:
+        return importlib.metadata.version("starenv")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def shard_path(out: str | Path, shard: int) -> Path:

@@ -123,3 +123,35 @@ def test_centroid_kind_gives_truth_ids_and_false_stars():
 def test_bad_spec_names_the_field(key, value, message):
     with pytest.raises(DatasetError, match=message):
         load_spec({**SPEC, key: value})
+
+
+TINY_TOML = """
+name = "cli"
+kind = "main_star"
+scenario = "paper_002"
+samples = 2
+shard_size = 2
+[overrides]
+"heads.0.width" = 64
+"heads.0.height" = 64
+"heads.0.pixel_pitch_um" = 192.0
+"heads.0.psf_sigma_px" = 0.5
+[pointing]
+mag_limit = 5.0
+center_ra_deg = 83.8
+center_dec_deg = -5.4
+radius_deg = 15.0
+"""
+
+
+def test_cli_builds_a_dataset_and_names_a_bad_field(tmp_path, capsys):
+    from starenv.cli import main
+
+    good = tmp_path / "good.toml"
+    good.write_text(TINY_TOML)
+    assert main(["dataset", str(good), "--out", str(tmp_path / "out"), "--jobs", "1", "--quiet"]) == 0
+    assert read_meta(shard_path(tmp_path / "out", 0))["count"] == 2
+    bad = tmp_path / "bad.toml"
+    bad.write_text(TINY_TOML.replace("radius_deg = 15.0", "radius_deg = 500.0"))
+    assert main(["dataset", str(bad), "--out", str(tmp_path / "bad"), "--quiet"]) == 2
+    assert "pointing.radius_deg: expected a number in [0.1, 180]" in capsys.readouterr().err

@@ -56,7 +56,21 @@ from starenv.sim.motion import (
     TorqueFree,
     Trajectory,
 )
-from starenv.sim.optics import BrownConrady, Camera, Distortion, LegendreField, NoDistortion, RadialXY
+from starenv.sim.optics import (
+    SEED003_PRESETS,
+    BrownConrady,
+    Camera,
+    Composite,
+    Distortion,
+    LegendreField,
+    NoDistortion,
+    Perspective,
+    Radial,
+    RadialXY,
+    Shear,
+    Tangential,
+    ThinPrism,
+)
 from starenv.sim.photometry import Photometry, StrayLight
 from starenv.sim.sensor import HeadSpec
 
@@ -67,10 +81,15 @@ class ScenarioError(ConfigError):
     """A scenario file (or override) that does not describe a valid mission."""
 
 
-DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre")
+DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre", "radial", "tangential", "thin_prism", "shear",
+                    "perspective", "seed003", "composite")
 
 
 def _distortion(tbl: Table | None) -> Distortion:
+    """A ``[heads.distortion]`` table.  Seed 003's types (``radial`` q1, q2; ``tangential`` p1, p2; ``thin_prism``
+    s1, s2; ``shear`` phi_x_deg, phi_y_deg; ``perspective`` h = [h11, h12, h13, h21, h22, h23, h31, h32]) take
+    normalised coefficients (focal plane over half the sensor width); ``seed003`` takes ``preset`` = one of
+    :data:`~starenv.sim.optics.SEED003_PRESETS`; ``composite`` applies its ``[[models]]`` tables in turn."""
     if tbl is None:
         return NoDistortion()
     kind = tbl.string("kind", choices=DISTORTION_KINDS)
@@ -82,9 +101,24 @@ def _distortion(tbl: Table | None) -> Distortion:
     elif kind == "radial_xy":
         kx, ky = tbl.number("kx_per_px2", 0.0), tbl.number("ky_per_px2", 0.0)
         model = tbl.build("distortion", RadialXY, kx=kx, ky=ky, center=tbl.vector("center_px", 2, None))
-    else:
+    elif kind == "legendre":
         cx, cy = tbl.vector("coeffs_x_px", None), tbl.vector("coeffs_y_px", None)
         model = tbl.build("distortion", LegendreField, coeffs_x=cx, coeffs_y=cy)
+    elif kind in ("radial", "tangential", "thin_prism"):
+        cls, names = {"radial": (Radial, ("q1", "q2")), "tangential": (Tangential, ("p1", "p2")),
+                      "thin_prism": (ThinPrism, ("s1", "s2"))}[kind]
+        model = tbl.build("distortion", cls, **{k: tbl.number(k, 0.0) for k in names})
+    elif kind == "shear":
+        phi = [tbl.number(k, 0.0, low=-44.9, high=44.9) * DEG
+               for k in ("phi_x_deg", "phi_y_deg")]
+        model = tbl.build("distortion", Shear, *phi)
+    elif kind == "perspective":
+        model = tbl.build("distortion", Perspective, tuple(tbl.vector("h", 8)))
+    elif kind == "seed003":
+        model = SEED003_PRESETS[tbl.string("preset", choices=tuple(SEED003_PRESETS))]
+    else:
+        models = [_distortion(t) for t in tbl.tables("models")]
+        model = tbl.build("distortion", Composite, tuple(models))
     tbl.finish()
     return model
 

@@ -18,7 +18,9 @@ Observation (``Dict``), as the sensor delivers it -- never truth:
 Action (``Dict``): ``attitude`` float64 (4,) quaternion ``[x, y, z, w]`` (inertial -> body, at mid-exposure of the
 observed frame; normalised on receipt) and ``attitude_valid`` int8 (); optionally per-head star lists padded to
 ``MAX_STARS`` rows, the rows in use flagged by a 0/1 mask: ``detections_xy`` (heads, MAX_STARS, 2) px with
-``detection_mask`` (heads, MAX_STARS) and ``catalog_ids`` (heads, MAX_STARS) (-1: not identified); ``predicted_xy``
+``detection_mask`` (heads, MAX_STARS) and ``catalog_ids`` (heads, MAX_STARS) (-1: not identified), ``corrected_xy``
+(heads, MAX_STARS, 2) px (the same rows after distortion correction: where the calibrated camera images each
+detection's direction); ``predicted_xy``
 (heads, MAX_STARS, 2) px with ``predicted_ids`` and ``prediction_mask`` (heads, MAX_STARS).  ``None``, a missing
 ``attitude`` or ``attitude_valid = 0`` makes the step *unavailable*; NaN/inf, a wrong shape or dtype raises
 ``ValueError`` naming the key.  Vector environments batch every key: start from :meth:`StarSensorEnv.null_action`.
@@ -40,7 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv import scenario as scenario_mod
 from starenv.agents.base import MAX_STARS, SensorInfo
-from starenv.scoring import attitude_error, score_stars
+from starenv.scoring import attitude_error, calibrated_positions, score_stars
 from starenv.sim.sensor import Frame, StarSensor
 
 
@@ -88,6 +90,7 @@ class StarSensorEnv(gym.Env):
                 "attitude_valid": spaces.Box(0, 1, (), np.int8),
                 "detections_xy": spaces.Box(-1e4, 1e5, (n_heads, MAX_STARS, 2), np.float64),
                 "detection_mask": spaces.Box(0, 1, (n_heads, MAX_STARS), np.int8),
+                "corrected_xy": spaces.Box(-1e4, 1e5, (n_heads, MAX_STARS, 2), np.float64),
                 "catalog_ids": spaces.Box(-1, 2**31 - 1, (n_heads, MAX_STARS), np.int64),
                 "predicted_xy": spaces.Box(-1e4, 1e5, (n_heads, MAX_STARS, 2), np.float64),
                 "predicted_ids": spaces.Box(-1, 2**31 - 1, (n_heads, MAX_STARS), np.int64),
@@ -183,6 +186,7 @@ class StarSensorEnv(gym.Env):
         att = attitude_error(Rotation.from_quat(action["attitude"]), frame.attitude, mountings) if available else None
         heads = []
         for i, h in enumerate(frame.heads):
+            spec = self.scenario.heads[i]
             heads.append(
                 vars(
                     score_stars(
@@ -191,6 +195,8 @@ class StarSensorEnv(gym.Env):
                         claimed_ids=action["catalog_ids"][i],
                         predicted_ids=action["predicted_ids"][i],
                         predicted_xy=action["predicted_xy"][i],
+                        corrected_xy=action["corrected_xy"][i],
+                        calibrated_xy=calibrated_positions(h.truth.xy_centroid, spec.camera, spec.calibrated),
                     )
                 )
             )
@@ -220,7 +226,7 @@ def _array(action: dict, key: str, shape: tuple, kind: str) -> np.ndarray:
 def parse_action(action, n_heads: int) -> dict:
     """Validate an action; returns per-head lists (None where absent) and the attitude quaternion or None."""
     out: dict[str, Any] = {"attitude": None}
-    keys = ("detections_xy", "catalog_ids", "predicted_xy", "predicted_ids")
+    keys = ("detections_xy", "catalog_ids", "corrected_xy", "predicted_xy", "predicted_ids")
     out.update({k: [None] * n_heads for k in keys})
     if action is None:
         return out
@@ -254,10 +260,16 @@ def parse_action(action, n_heads: int) -> dict:
             raise ValueError(f"action[{mask_key!r}] must hold 0 or 1")
         xy = _array(action, xy_key, (n_heads, MAX_STARS, 2), "f") if xy_key in action else None
         ids = _array(action, id_key, (n_heads, MAX_STARS), "i") if id_key in action else None
+        corrected = None
+        if xy_key == "detections_xy" and "corrected_xy" in action:
+            corrected = _array(action, "corrected_xy", (n_heads, MAX_STARS, 2), "f")
         for h in range(n_heads):
             rows = mask[h].astype(bool)
             out[xy_key][h] = None if xy is None else xy[h, rows]
             out[id_key][h] = None if ids is None else ids[h, rows]
+            if corrected is not None:
+                out["corrected_xy"][h] = corrected[h, rows]
     if out["detections_xy"][0] is None:
         out["catalog_ids"] = [None] * n_heads  # ids are scored through their detections
+        out["corrected_xy"] = [None] * n_heads
     return out

@@ -2,10 +2,13 @@
 
 Per step: the predictor propagates the last estimate with the gyro to the frame's mid-exposure; on each head with a
 valid frame the deblurrer (optional) restores the image, the detector finds and centroids stars and the distortion
-corrector (optional) fixes their positions; the identifier labels them (all heads at once, with the prediction as
-prior); the solver turns the identified stars of all heads into one attitude.  When fewer than two stars are
-identified (a dropped or smeared-out frame), the predicted attitude is reported instead, so the predictor carries
-the pipeline through; the estimate (solved or predicted) becomes the predictor's new state.
+corrector (optional) maps their positions to the calibrated camera's; the identifier labels them (all heads at once,
+with the prediction as prior); the solver turns the identified stars of all heads into one attitude.  When fewer
+than two stars are identified (a dropped or smeared-out frame), the predicted attitude is reported instead, so the
+predictor carries the pipeline through; the estimate (solved or predicted) becomes the predictor's new state.  With a
+solved attitude the corrector learns from the identified stars.  The action reports the measured positions
+(``detections_xy``), the corrected ones (``corrected_xy``, the same rows) and the predicted stars where they will be
+measured (the predictor's positions in the calibrated camera mapped back through the corrector).
 
 Agents are given as instances, classes or ``"module:Class"`` strings (a path an agent had before it moved is
 refused with its new one).  ``Pipeline`` is a :class:`~starenv.agents.base.Policy`: after each call ``report`` holds
@@ -130,7 +133,7 @@ class Pipeline:
         if limit is None:
             limit = min(field_mag_limit(self.cameras, load_catalog(8.0, epoch).magnitude, 30.0), ONBOARD_MAX_MAG)
         self.catalog = load_catalog(limit, epoch)
-        for role in ("predictor", "identifier"):
+        for role in ("predictor", "identifier", "corrector"):
             if self.agents[role] is not None:
                 self.agents[role].reset(self.cameras, self.catalog)
         self.report = StepReport()
@@ -154,6 +157,7 @@ class Pipeline:
         if ag["predictor"] is not None:
             prediction = self._timed("predictor", ag["predictor"].predict, step)
         found, seen = [], []
+        corrector = ag["corrector"]
         report.restorations = [None] * len(self.cameras) if ag["deblurrer"] is not None else []
         for h, cam in enumerate(self.cameras):
             if not step.frame_valid[h]:
@@ -168,24 +172,30 @@ class Pipeline:
                 report.restorations[h] = Restoration(raw, image, info)
             seen.append(image)
             stars = self._timed("detector", ag["detector"].detect, image, cam)
-            if ag["corrector"] is not None:
-                stars = self._timed("corrector", ag["corrector"].correct, stars, h, cam)
+            if corrector is not None:
+                stars = self._timed("corrector", corrector.correct, stars, h, cam)
             found.append(stars)
         identified = self._timed("identifier", ag["identifier"].identify, found, self.cameras, prediction.attitude,
                                  seen)
         attitude = self._solve(identified)
+        measured, predicted = identified, prediction.stars
+        if corrector is not None:  # back to the image, with the weights the detections were corrected with
+            measured = [self._timed("corrector", corrector.uncorrect, s, h, cam)
+                        for h, (s, cam) in enumerate(zip(identified, self.cameras, strict=True))]
+            predicted = [self._timed("corrector", corrector.uncorrect, s, h, cam)
+                         for h, (s, cam) in enumerate(zip(prediction.stars, self.cameras, strict=False))]
         if attitude is not None:
             report.source = "solved"
-            if ag["corrector"] is not None:
+            if corrector is not None:
                 for h, cam in enumerate(self.cameras):
-                    self._timed("corrector", ag["corrector"].learn, identified[h], h, cam, attitude, self.catalog)
+                    self._timed("corrector", corrector.learn, identified[h], h, cam, attitude, self.catalog)
         elif prediction.attitude is not None:
             attitude, report.source = prediction.attitude, "predicted"
         if attitude is not None and ag["predictor"] is not None:
             carried = identified if report.source == "solved" else prediction.stars
             self._timed("predictor", ag["predictor"].update, attitude, carried, step.time_s)
         report.latency_s["pipeline"] = time.perf_counter() - t_start
-        return self._action(attitude, identified, prediction)
+        return self._action(attitude, identified, measured, predicted)
 
     def _solve(self, identified: list[StarMeasurements]) -> Rotation | None:
         body, inertial = [], []
@@ -203,12 +213,14 @@ class Pipeline:
         except ValueError:  # e.g. all identified stars (nearly) parallel: no attitude from this frame
             return None
 
-    def _action(self, attitude: Rotation | None, identified: list[StarMeasurements], prediction: Prediction) -> dict:
+    def _action(self, attitude: Rotation | None, identified: list[StarMeasurements], measured: list[StarMeasurements],
+                predicted: list[StarMeasurements]) -> dict:
         n_heads = len(self.cameras)
         action = {
             "attitude": np.array([0.0, 0.0, 0.0, 1.0]) if attitude is None else attitude.as_quat(),
             "attitude_valid": np.int8(attitude is not None),
             "detections_xy": np.zeros((n_heads, MAX_STARS, 2)),
+            "corrected_xy": np.zeros((n_heads, MAX_STARS, 2)),
             "detection_mask": np.zeros((n_heads, MAX_STARS), np.int8),
             "catalog_ids": np.full((n_heads, MAX_STARS), -1, np.int64),
             "predicted_xy": np.zeros((n_heads, MAX_STARS, 2)),
@@ -219,10 +231,11 @@ class Pipeline:
             stars = identified[h]
             order = np.argsort(-stars.flux, kind="stable")[:MAX_STARS]  # brightest first if there are too many
             k = len(order)
-            action["detections_xy"][h, :k] = stars.xy[order]
+            action["detections_xy"][h, :k] = measured[h].xy[order]
+            action["corrected_xy"][h, :k] = stars.xy[order]
             action["catalog_ids"][h, :k] = stars.catalog_id[order]
             action["detection_mask"][h, :k] = 1
-            pred = prediction.stars[h] if h < len(prediction.stars) else StarMeasurements(np.zeros((0, 2)))
+            pred = predicted[h] if h < len(predicted) else StarMeasurements(np.zeros((0, 2)))
             known = np.flatnonzero((pred.catalog_id >= 0) & np.all(np.isfinite(pred.xy), axis=1))[:MAX_STARS]
             k = len(known)
             action["predicted_xy"][h, :k] = pred.xy[known]

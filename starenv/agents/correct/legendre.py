@@ -15,6 +15,15 @@ Online learners (one update per frame from the frame's identified stars):
 * :class:`RlsLearner` -- ours: recursive least squares in information form, ``A <- lam A + B^T B``,
   ``c <- lam c + B^T F``, ``W = A^-1 c``, with a Gaussian prior on ``W`` (``prior_px``) centred on the start weights;
   with ``lam = 1`` it is exactly the ridge-regularised least-squares fit of every star seen so far.
+
+Observability.  On orbit the references come from the attitude solved from the corrected stars themselves, so a
+field that a small rotation of the camera produces (a shift of the image by pitch or yaw, a turn about the boresight)
+is absorbed by the attitude and never seen in the labels: whatever rotation-like part the weights hold persists.
+:class:`LegendreCorrector` therefore keeps the weights' components along the three rotation fields at their start
+values (zero, or the ground calibration's): after every update it projects them out of the change
+(:func:`rotation_modes`; the modes are orthonormal, so the projection is a dot product of weight vectors).  The part
+of a true distortion that looks like a rotation stays uncorrected: it is an attitude (mounting) bias no star-only
+calibration can tell apart.
 """
 
 from __future__ import annotations
@@ -58,6 +67,27 @@ def fit_least_squares(measured: np.ndarray, reference: np.ndarray, camera: Camer
         raise ValueError(f"least squares at order {order} needs at least {b.shape[1]} stars, got {len(b)}")
     w, *_ = np.linalg.lstsq(b, labels(measured, reference, camera), rcond=None)
     return w
+
+
+def rotation_modes(camera: Camera, order: int = ORDER, step_rad: float = 1e-6) -> np.ndarray:
+    """Orthonormal basis (3, 2 n_modes) of the weight vectors (x column then y column, flattened) of the pixel fields
+    that small rotations of ``camera`` about its X, Y and Z axes produce, each fitted by least squares on a 41 x 41
+    grid over the sensor (pitch and yaw are a shift plus a few per cent of quadratic terms; roll is exact)."""
+    u = np.linspace(-0.5, camera.width - 0.5, 41)
+    v = np.linspace(-0.5, camera.height - 0.5, 41)
+    xy = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
+    dirs = np.stack([(xy[:, 0] - camera.cx) / camera.fx, (xy[:, 1] - camera.cy) / camera.fy, np.ones(len(xy))], 1)
+    ideal = np.stack([camera.fx * dirs[:, 0] + camera.cx, camera.fy * dirs[:, 1] + camera.cy], 1)
+    b = design(xy, camera, order)
+    fields = []
+    for axis in np.eye(3):
+        turned = Rotation.from_rotvec(axis * step_rad).apply(dirs)
+        moved = np.stack([camera.fx * turned[:, 0] / turned[:, 2] + camera.cx,
+                          camera.fy * turned[:, 1] / turned[:, 2] + camera.cy], 1)
+        w, *_ = np.linalg.lstsq(b, (moved - ideal) / (step_rad * scale_px(camera)), rcond=None)
+        fields.append(w.T.ravel())
+    q, _ = np.linalg.qr(np.array(fields).T)
+    return q.T
 
 
 @dataclass
@@ -180,12 +210,13 @@ class LegendreCorrector:
     their catalogue directions through the solved attitude and the calibrated camera as references, and updates the
     weights with ``learner`` (``"rls"``, ours, or ``"adam"``, the paper's) and its ``learner_options``.  ``weights``:
     an ``.npz`` of ground-trained weights (:meth:`LegendreModel.save`) to start from, or None to start from zero (the
-    identity correction) at ``order``.  A star whose label is more than ``gate_px`` from the current model's offset
+    identity correction) at ``order``.  ``fix_rotation``: keep the rotation-like components of the weights at their
+    start values (module docstring).  A star whose label is more than ``gate_px`` from the current model's offset
     is left out of the update (a wrong identification); a frame with fewer than ``min_stars`` is skipped.
     """
 
     def __init__(self, order: int = ORDER, learner: str = "rls", weights: str | None = None, gate_px: float = 5.0,
-                 min_stars: int = 5, learner_options: dict | None = None):
+                 min_stars: int = 5, fix_rotation: bool = True, learner_options: dict | None = None):
         if learner not in LEARNERS:
             raise ValueError(f"learner must be one of {sorted(LEARNERS)}, got {learner!r}")
         self.start = LegendreModel.zeros(order) if weights is None else LegendreModel.load(weights)
@@ -194,6 +225,10 @@ class LegendreCorrector:
         LEARNERS[learner](**self.learner_options)  # options checked now, not at the first frame
         self.gate_px = checks.positive("gate_px", gate_px, "px")
         self.min_stars = checks.integer("min_stars", min_stars, 1, 10**6)
+        if not isinstance(fix_rotation, bool):
+            raise ValueError(f"fix_rotation must be true or false, got {fix_rotation!r}")
+        self.fix_rotation = fix_rotation
+        self._rotation: dict[int, np.ndarray] = {}
         self.models: dict[int, LegendreModel] = {}
         self.learners: dict[int, AdamLearner | RlsLearner] = {}
         self.frames_learned: dict[int, int] = {}
@@ -203,6 +238,7 @@ class LegendreCorrector:
         self.models = {h: LegendreModel(self.start.weights) for h in range(len(cameras))}
         self.learners = {h: LEARNERS[self.learner_name](**self.learner_options) for h in range(len(cameras))}
         self.frames_learned = dict.fromkeys(range(len(cameras)), 0)
+        self._rotation = {}
 
     def _model(self, head: int) -> LegendreModel:
         if head not in self.models:
@@ -234,4 +270,11 @@ class LegendreCorrector:
             return
         b = design(measured[keep], camera, model.order)
         self.learners[head].update(model, b, labels(measured[keep], reference[keep], camera))
+        if self.fix_rotation:
+            if head not in self._rotation:
+                self._rotation[head] = rotation_modes(camera, model.order)
+            g = self._rotation[head]
+            change = (model.weights - self.start.weights).T.ravel()
+            change -= g.T @ (g @ change)
+            model.weights = self.start.weights + change.reshape(2, -1).T
         self.frames_learned[head] += 1

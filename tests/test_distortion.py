@@ -100,3 +100,71 @@ def test_legendre_modes_are_orthonormal_by_quadrature():
     b = legendre_basis(x, y, 5)
     assert b.shape == (64, 21)
     np.testing.assert_allclose(b.T @ (w[:, None] * b), np.eye(21), atol=1e-12)
+
+
+def _planted(order=5, seed=7):
+    """Weights (n_modes, 2), normalised, of a ~2 px field; pairs (measured, reference) on a 2048^2 camera."""
+    from starenv.sim.optics import Camera
+
+    rng = np.random.default_rng(seed)
+    cam = Camera.from_fov(20.0, 2048, 2048, 7.45e-6)
+    w = rng.normal(0.0, 1.0 / 1024, (21, 2))
+    measured = rng.uniform(-0.5, 2047.5, (3000, 2))
+    return cam, w, measured
+
+
+def test_least_squares_recovers_planted_coefficients():
+    from starenv.agents.correct.legendre import LegendreModel, fit_least_squares
+
+    cam, w, measured = _planted()
+    reference = measured - LegendreModel(w).offset(measured, cam)
+    np.testing.assert_allclose(fit_least_squares(measured, reference, cam), w, atol=1e-13)
+    # the model's inverse: uncorrect(correct(p)) = p to far below a micro-pixel
+    model = LegendreModel(w)
+    np.testing.assert_allclose(model.uncorrect(model.correct(measured, cam), cam), measured, atol=1e-9)
+
+
+def test_torch_ground_training_matches_least_squares():
+    """Adam (lr 1e-4, batch 128, 8:2 split) on noise-free planted pairs: without the forgetting factor it reaches the
+    least-squares weights; with the paper's tau = 0.999 it stays within the jitter of its lr-sized steps."""
+    from starenv.agents.correct.legendre import LegendreModel, fit_least_squares
+    from starenv.agents.learned.legendre import train_ground
+
+    cam, w, measured = _planted()
+    reference = measured - LegendreModel(w).offset(measured, cam)
+    ls = fit_least_squares(measured, reference, cam)
+    plain = train_ground(measured, reference, cam, epochs=40, tau=1.0, seed=0)
+    assert len(plain.test) == 600 and plain.loss[-1] < plain.loss[0] / 100
+    px = 1024.0
+    assert np.max(np.abs(plain.model.weights - ls)) * px < 0.05  # each weight within 0.05 px of the LS optimum
+    test_xy = measured[plain.test]
+    err = np.abs(plain.model.offset(test_xy, cam) - LegendreModel(ls).offset(test_xy, cam))
+    assert err.mean() < 0.02
+    again = train_ground(measured, reference, cam, epochs=40, tau=1.0, seed=0)
+    np.testing.assert_array_equal(again.model.weights, plain.model.weights)  # same seed, same bits
+    paper = train_ground(measured, reference, cam, epochs=40, tau=0.999, seed=0)
+    assert np.abs(paper.model.offset(test_xy, cam) - LegendreModel(ls).offset(test_xy, cam)).mean() < 0.1
+
+
+def test_pairs_are_reproducible_alone_and_follow_the_distortion():
+    from starenv.datasets.pairs import frame_pairs, orbit_pairs
+
+    sc = scenario_mod.load("leo_distortion")
+    a, b = frame_pairs(sc, 5, 3), frame_pairs(sc, 5, 3)
+    np.testing.assert_array_equal(a.measured, b.measured)
+    assert len(a) > 10 and not np.array_equal(a.catalog_id, frame_pairs(sc, 5, 4).catalog_id)
+    cam = sc.heads[0].camera
+    np.testing.assert_allclose(cam.distortion.distort(a.reference, cam.intrinsics), a.distorted, atol=1e-9)
+    assert 0.02 < np.std(a.measured - a.distorted) < 0.08  # 0.05 px centroid noise
+    o = orbit_pairs(sc, 0, 10)
+    assert (o.attitude * sc.trajectory.attitude(10.0).inv()).magnitude() < 1e-12
+
+
+def test_coverage_of_discs():
+    from starenv.datasets.pairs import coverage
+
+    # one disc of 96 px in the middle of a 2048^2 sensor: pi 96^2 / 2048^2 = 0.69 %, to a cell's rounding
+    assert abs(coverage(np.array([[1024.0, 1024.0]]), 2048, 2048) - np.pi * 96**2 / 2048**2) < 5e-4
+    assert coverage(np.zeros((0, 2)), 2048, 2048) == 0.0
+    grid = np.stack(np.meshgrid(np.arange(0, 2048, 64.0), np.arange(0, 2048, 64.0)), -1).reshape(-1, 2)
+    assert coverage(grid, 2048, 2048) == 1.0

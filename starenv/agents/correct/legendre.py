@@ -278,3 +278,18 @@ class LegendreCorrector:
             change -= g.T @ (g @ change)
             model.weights = self.start.weights + change.reshape(2, -1).T
         self.frames_learned[head] += 1
+
+
+def learn_frame(corrector: LegendreCorrector, measured: np.ndarray, catalog_id: np.ndarray, camera: Camera,
+                catalog: StarCatalog, head: int = 0) -> Rotation:
+    """One on-orbit step without images: correct the measured positions (n, 2) px of correctly identified stars
+    (``catalog_id``, HIP numbers of ``catalog``), solve the attitude from them (SVD Wahba, unweighted) and let the
+    corrector learn with it, as the pipeline does.  Returns the solved attitude (inertial -> body)."""
+    from starenv.agents.solve import wahba_svd
+
+    stars = corrector.correct(StarMeasurements(measured, catalog_id=catalog_id), head, camera)
+    body = camera.mounting.inv().apply(camera.unproject(stars.xy))
+    inertial = catalog.unit[np.searchsorted(catalog.hip, catalog_id)]
+    attitude = Rotation.from_matrix(wahba_svd(body, inertial))
+    corrector.learn(stars, head, camera, attitude, catalog)
+    return attitude

@@ -93,6 +93,7 @@ ACCURACY = (
     ("roll median / p95 (arcsec)", ("roll_error_arcsec_median", "roll_error_arcsec_p95")),
     ("centroid median / p95 (px)", ("centroid_error_px_mean_median", "centroid_error_px_mean_p95")),
     ("prediction median / p95 (px)", ("prediction_error_px_mean_median", "prediction_error_px_mean_p95")),
+    ("distortion left median / p95 (px)", ("correction_error_px_mean_median", "correction_error_px_mean_p95")),
 )
 RESTORATION = (
     ("centroid blurred (px)", "restoration_centroid_error_blurred_px"),
@@ -198,6 +199,7 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
             for k, v in rec.items():
                 if k.startswith(LATENCY_PREFIX) and v is not None:
                     lat.setdefault(k[len(LATENCY_PREFIX):-len("_ms")], []).append(v)
+    made += _plot_distortion(run_files, folder, plt)
     for scenario, per in by_scenario.items():
         roles = sorted({role for lat in per.values() for role in lat})
         if not roles:
@@ -221,6 +223,34 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
         title = f"{scenario}: agent latency per role (wall clock, all steps)"
         ax.grid(True, axis="y", which="both", alpha=0.3)
         made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, 'latency')}.png")))
+    return made
+
+
+def _plot_distortion(run_files: list[Path], folder: Path, plt) -> list[tuple[str, Path]]:
+    """Per scenario whose camera carries uncalibrated distortion (over 0.05 px on the identified stars): prediction
+    error and distortion left after correction per step, one line per pipeline and seed."""
+    series: dict[str, list[tuple[str, list[dict]]]] = {}
+    for f in run_files:
+        header, steps, _ = read_run(f)
+        ident = header["identity"]
+        if ident["sweep"] is None and any((r.get("distortion_px_mean") or 0.0) > 0.05 for r in steps):
+            label = f"{ident['pipeline']['name']} s{ident['seed']}"
+            series.setdefault(ident["scenario"], []).append((label, steps))
+    made = []
+    for scenario, runs in series.items():
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        for i, (label, steps) in enumerate(sorted(runs)):
+            for key, style, what in (("prediction_error_px_mean", "-", "prediction"),
+                                     ("correction_error_px_mean", ":", "distortion left")):
+                pts = [(r["frame"], r[key]) for r in steps if r.get(key) is not None]
+                if pts:
+                    ax.plot(*zip(*pts, strict=True), style, color=f"C{i}", label=f"{label} {what}")
+        ax.set_yscale("log")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("error on identified stars (px)")
+        ax.grid(True, which="both", alpha=0.3)
+        title = f"{scenario}: prediction error and distortion left per step"
+        made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, 'distortion')}.png")))
     return made
 
 

@@ -33,7 +33,8 @@ PIXEL_ORIGIN = 0.5
 COLORS = {"truth": (50, 230, 50), "detections": (255, 80, 50), "predictions": (50, 180, 255)}
 STAGES = (("attitude", ("available", "within_threshold", "attitude_", "cross_boresight_", "roll_", "pitch_", "yaw_")),
           ("detection", ("centroid_", "detection_")), ("identification", ("id_rate", "false_id_rate", "solved")),
-          ("prediction", ("prediction_",)), ("restoration", ("restoration_",)), ("latency", ("latency_",)))
+          ("correction", ("correction_", "distortion_")), ("prediction", ("prediction_",)),
+          ("restoration", ("restoration_",)), ("latency", ("latency_",)))
 LEVELS = {INFO: "INFO", WARNING: "WARN", ERROR: "ERROR"}
 
 

@@ -98,17 +98,25 @@ class Grnn:
     def __init__(self, inputs: np.ndarray, targets: np.ndarray, spread: float):
         self.spread = checks.in_range("rho", spread, 0.0, 10.0, low_open=True, unit="deg")
         inputs = np.asarray(inputs, dtype=np.float64)
-        self.inputs = inputs.reshape(len(inputs), -1)
-        self.bits = code_bits(targets)
-        self.tree = cKDTree(self.inputs)
+        inputs = inputs.reshape(len(inputs), -1)
+        order = np.argsort(inputs[:, 0], kind="stable")  # 1-D inputs: a sorted array is the index
+        self.inputs, self.bits = inputs[order], code_bits(np.asarray(targets)[order])
+        self.tree = cKDTree(self.inputs) if inputs.shape[1] > 1 else None
 
     def outputs(self, x: np.ndarray) -> np.ndarray:
         """Network outputs (q, 13) for inputs ``x`` (q, d)."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, self.inputs.shape[1])
+        reach = KERNEL_REACH * self.spread
+        if self.tree is None:
+            lo = np.searchsorted(self.inputs[:, 0], x[:, 0] - reach)
+            hi = np.searchsorted(self.inputs[:, 0], x[:, 0] + reach, side="right")
+            near = [slice(a, b) for a, b in zip(lo, hi, strict=True)]
+        else:
+            near = self.tree.query_ball_point(x, reach)
         out = np.full((len(x), CODE_BITS), np.nan)
-        for i, rows in enumerate(self.tree.query_ball_point(x, KERNEL_REACH * self.spread)):
-            if rows:
-                d = np.linalg.norm(self.inputs[rows] - x[i], axis=1)
+        for i, rows in enumerate(near):
+            d = np.linalg.norm(self.inputs[rows] - x[i], axis=1)
+            if len(d):
                 a = np.exp(-((NEWGRNN_SCALE * d / self.spread) ** 2))
                 out[i] = a @ self.bits[rows] / a.sum()
         return out

@@ -65,13 +65,14 @@ def run_methods(methods: dict, cameras, data) -> dict:
     """Per method: share of samples with all heads right, median ms per sample, and GRNN stage statistics."""
     results = {}
     for name, ident in methods.items():
-        right, times, stage1, few, failed2, fixed3, stage_ms = 0, [], 0, 0, 0, 0, []
+        right, times, stage1, few, failed2, fixed3, stage_ms, wrong = 0, [], 0, 0, 0, 0, [], 0
         for _, cs, prior in data:
             stars = [StarMeasurements(x, f) for x, f in zip(cs.xy, cs.flux, strict=True)]
             t0 = time.perf_counter()
             out = ident.identify(stars, cameras, prior if name.startswith("tracking") else None)
             times.append(1e3 * (time.perf_counter() - t0))
             heads_ok = [head_right(o.catalog_id, t) for o, t in zip(out, cs.hip, strict=True)]
+            wrong += sum(np.count_nonzero((o.catalog_id >= 0) & (o.catalog_id != t)) for o, t in zip(out, cs.hip, strict=True))
             right += all(heads_ok)
             few += any(len(t) < 3 for t in cs.hip)
             if isinstance(ident, GrnnIdentifier):
@@ -84,7 +85,7 @@ def run_methods(methods: dict, cameras, data) -> dict:
                         failed2 += 1
                         fixed3 += heads_ok[h]
                 stage_ms.append(ident.last_timing_ms)
-        row = {"right": right / len(data), "ms": float(np.median(times)), "few": few / len(data)}
+        row = {"right": right / len(data), "ms": float(np.median(times)), "few": few / len(data), "wrong": wrong}
         if stage_ms:
             row.update(stage1=stage1 / len(data), failed2=failed2, fixed3=fixed3,
                        stage_ms={k: float(np.median([s[k] for s in stage_ms])) for k in stage_ms[0]})
@@ -210,12 +211,12 @@ def main(argv=None) -> None:
     data = samples(nav, cameras, args.samples, 0.07, seed=1)
     res = run_methods(methods, cameras, data)
     print(f"## {args.samples} random attitudes, 0.07 px\n")
-    print("| method | all heads right | stage 1 (GRNN) | heads failing stage 2 -> fixed by stage 3 | ms per sample "
-          "(stage 1 + 2 + 3) |\n|---|---|---|---|---|")
+    print("| method | all heads right | wrong ids | stage 1 (GRNN) | heads failing stage 2 -> fixed by stage 3 | "
+          "ms per sample (stage 1 + 2 + 3) |\n|---|---|---|---|---|---|")
     for name, r in res.items():
         stages = (f"{r['stage1']:.1%}", f"{r['failed2']} -> {r['fixed3']}",
                   " + ".join(f"{v:.2f}" for v in r["stage_ms"].values())) if "stage1" in r else ("", "", "")
-        print(f"| {name} | {r['right']:.1%} | {stages[0]} | {stages[1]} | {r['ms']:.1f} {stages[2]} |")
+        print(f"| {name} | {r['right']:.1%} | {r['wrong']} | {stages[0]} | {stages[1]} | {r['ms']:.1f} {stages[2]} |")
     print(f"\nsamples with a head of < 3 stars: {res['lost in space']['few']:.1%}\n")
 
     print("## identification rate vs centroid noise (all heads right)\n\n| noise (px) | "

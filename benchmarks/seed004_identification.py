@@ -72,7 +72,8 @@ def run_methods(methods: dict, cameras, data) -> dict:
             out = ident.identify(stars, cameras, prior if name.startswith("tracking") else None)
             times.append(1e3 * (time.perf_counter() - t0))
             heads_ok = [head_right(o.catalog_id, t) for o, t in zip(out, cs.hip, strict=True)]
-            wrong += sum(np.count_nonzero((o.catalog_id >= 0) & (o.catalog_id != t)) for o, t in zip(out, cs.hip, strict=True))
+            wrong += sum(np.count_nonzero((o.catalog_id >= 0) & (o.catalog_id != t))
+                         for o, t in zip(out, cs.hip, strict=True))
             right += all(heads_ok)
             few += any(len(t) < 3 for t in cs.hip)
             if isinstance(ident, GrnnIdentifier):

@@ -142,3 +142,23 @@ def test_corrector_in_the_loop_on_paper_003():
     assert before["prediction_error_px_mean"] > 0.5 and last["prediction_error_px_mean"] < 0.1
     assert records["rls"][0]["correction_error_px_mean"] > 0.5 and last["correction_error_px_mean"] < 0.05
     assert before["correction_error_px_mean"] == pytest.approx(before["distortion_px_mean"])
+
+
+def test_correction_score_is_the_offset_error_on_correct_ids():
+    """Two stars, true offsets (1, 0) and (0, -2) px; the corrector removes (0.9, 0) and (0, -2.2); a third detection
+    claims a wrong id and is not scored."""
+    from starenv.scoring import score_stars
+    from starenv.sim.render import StarTruth
+
+    centroid = np.array([[100.0, 100.0], [500.0, 400.0], [900.0, 900.0]])
+    calibrated = centroid - [[1.0, 0.0], [0.0, -2.0], [0.0, 0.0]]
+    n = 3
+    truth = StarTruth(np.array([11, 22, 33]), np.zeros(n), centroid, centroid, centroid, centroid, np.ones(n),
+                      np.ones(n), np.ones(n, dtype=bool))
+    detected = centroid + [[0.03, 0.0], [0.0, 0.04], [0.0, 0.0]]  # centroid noise: not part of the score
+    corrected = detected - [[0.9, 0.0], [0.0, -2.2], [0.0, 0.0]]
+    s = score_stars(truth, detected, np.array([11, 22, 99]), corrected_xy=corrected, calibrated_xy=calibrated)
+    assert s.ids_correct == 2 and s.ids_wrong == 1
+    assert s.correction_error_px_mean == pytest.approx((0.1 + 0.2) / 2)
+    assert (s.correction_error_x_px, s.correction_error_y_px) == pytest.approx((0.05, 0.1))
+    assert s.distortion_px_mean == pytest.approx(1.5)

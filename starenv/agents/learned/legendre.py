@@ -6,6 +6,10 @@ positions, normalised units) is trained on mini-batches of 128 stars with the po
 (averaged over the batch, the two axes' losses summed; they share no weight), by Adam (lr 1e-4, beta 0.9 / 0.999,
 eps 1e-8) followed, each step, by the forgetting factor ``W <- tau W`` (tau = 0.999): the paper's Eq. 25.
 Deterministic on CPU for a given seed.  torch is imported inside :func:`train_ground` only.
+
+    python -m starenv.agents.learned.legendre SCENARIO --out ground.npz [--frames 200] [--method lstsq|torch]
+
+writes ground weights for ``LegendreCorrector(weights="ground.npz")``.
 """
 
 from __future__ import annotations
@@ -76,3 +80,38 @@ def _epoch(torch, b, f, w, opt, gen, batch: int, tau: float) -> float:
             w.mul_(tau)
         total += float(loss.detach()) * len(idx)
     return total / len(b)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Ground weights for a scenario's head 0 from random-sky pairs, written as a ``.npz`` that
+    ``LegendreCorrector(weights=...)`` starts from."""
+    import argparse
+
+    from starenv import scenario as scenario_mod
+    from starenv.agents.correct.legendre import fit_least_squares
+    from starenv.datasets.pairs import pooled_pairs
+
+    parser = argparse.ArgumentParser(prog="python -m starenv.agents.learned.legendre", description=main.__doc__)
+    parser.add_argument("scenario", help="bundled scenario name or TOML path")
+    parser.add_argument("--out", required=True, help="output .npz")
+    parser.add_argument("--frames", type=int, default=200, help="random-sky frames (default 200)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--method", choices=("lstsq", "torch"), default="lstsq",
+                        help="closed-form least squares (default) or the paper's Adam training")
+    parser.add_argument("--epochs", type=int, default=40)
+    parser.add_argument("--order", type=int, default=ORDER)
+    args = parser.parse_args(argv)
+    sc = scenario_mod.load(args.scenario)
+    cam = sc.heads[0].calibrated
+    pairs = pooled_pairs(sc, args.seed, args.frames)
+    if args.method == "lstsq":
+        model = LegendreModel(fit_least_squares(pairs.measured, pairs.reference, cam, args.order))
+    else:
+        model = train_ground(pairs.measured, pairs.reference, cam, args.order, args.epochs, seed=args.seed).model
+    model.save(args.out)
+    residual = np.abs(model.correct(pairs.distorted, cam) - pairs.reference).mean(axis=0)
+    print(f"{args.out}: {len(pairs)} stars, residual on them {residual[0]:.4f} / {residual[1]:.4f} px (x / y)")
+
+
+if __name__ == "__main__":
+    main()

@@ -18,9 +18,9 @@ frame's stars at their noise-free positions, two ways: against the truth, and af
 solved attitude can absorb).  Converged = the first frame from which the residual stays <= 0.04 px on both axes to
 the end.  Coverage (table 5): ``C_star`` (disc radius 96 px) over ``--coverage-starts`` random start times.
 
-In the loop (table 6): ``paper_003`` rendered and run by the pipeline without a corrector, with the RLS one and with
-the paper's Adam one,
-``--loop-steps`` steps, seed 0.
+In the loop (tables 6-7): ``paper_003`` (``--loop-steps`` steps) and ``leo_distortion`` (twice as many) rendered and
+run by the tracking pipeline without a corrector, with the RLS one and with the paper's Adam one, seed 0; medians over
+the steps after the first 5 (``paper_003``) or the first half (``leo_distortion``).
 
     python benchmarks/seed003_distortion.py [--ground-frames 200] [--epochs 40] [--orbit-frames 3000]
         [--coverage-starts 4] [--loop-steps 20] [--parts ground orbit coverage loop]
@@ -196,22 +196,23 @@ def star_coverage(starts: int) -> None:
     print("| paper Table 1 | 42.3 % | 71.2 % | 98.3 % | 99.3 % |")
 
 
-def loop(steps: int) -> None:
+def loop(scenario: str, steps: int, skip: int) -> None:
     from starenv.agents.pipeline import Pipeline
     from starenv.env import StarSensorEnv
     from starenv.episode import run_episode
 
-    print(f"\n## In the loop: paper_003, {steps} steps, seed 0 (medians over steps 5..{steps - 1})\n")
+    print(f"\n## In the loop: {scenario}, {steps} steps, seed 0 (medians over steps {skip}..{steps - 1})\n")
     print("| pipeline | prediction error (px) | distortion left (px) | attitude error (arcsec) | ID rate | "
           "corrector ms/step |")
     print("|---|---|---|---|---|---|")
     corrector = {"corrector": "starenv.agents.correct.legendre:LegendreCorrector"}
-    for name, agents, options in (("tracking", {}, {}), ("tracking + RLS corrector", corrector, {}),
+    for name, agents, options in (("tracking", {"corrector": None}, {}),
+                                  ("tracking + RLS corrector", corrector, {"corrector": {"learner": "rls"}}),
                                   ("tracking + Adam corrector (paper)", corrector, {"corrector": {"learner": "adam"}})):
-        env = StarSensorEnv("paper_003")
-        recs = run_episode(env, Pipeline.for_scenario(env.scenario, agents, options), seed=0, steps=steps).records[5:]
-        cells = [_median(recs, k) for k in ("prediction_error_px_mean", "correction_error_px_mean",
-                                            "attitude_error_arcsec", "id_rate", "latency_corrector_ms")]
+        env = StarSensorEnv(scenario)
+        recs = run_episode(env, Pipeline.for_scenario(env.scenario, agents, options), seed=0, steps=steps).records
+        cells = [_median(recs[skip:], k) for k in ("prediction_error_px_mean", "correction_error_px_mean",
+                                                   "attitude_error_arcsec", "id_rate", "latency_corrector_ms")]
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
@@ -238,7 +239,8 @@ def main() -> None:
     if "coverage" in args.parts:
         star_coverage(args.coverage_starts)
     if "loop" in args.parts:
-        loop(args.loop_steps)
+        loop("paper_003", args.loop_steps, 5)
+        loop("leo_distortion", 2 * args.loop_steps, args.loop_steps)
     print(f"\n(total {time.perf_counter() - t0:.0f} s)")
 
 

@@ -1,24 +1,24 @@
 """Seed 003's distortion correction reproduced and compared: ground training per distortion type, the baselines,
 on-orbit online learning, the star-coverage rate and the corrector in the loop.
 
-Ground (tables 1-2): the camera of ``paper_003`` (2048^2, 20 deg, magnitude 6.5) with each of the paper's six
-distortion presets, uncalibrated; ``--ground-frames`` frames of random sky (``starenv.datasets.pairs``), 0.05 px
-centroid noise, the stars split 8:2.  Residual = mean |corrected - reference| per axis on the test stars, evaluated at
-their noise-free distorted positions (the model's error, not the centroid noise), px.  The network is fitted in
-closed form (least squares) and trained the paper's way (torch, Adam lr 1e-4 with tau = 0.999, batch 128,
-``--epochs``); the baselines are fitted to the same training stars.  Times: fit on all training stars, and
-correcting one frame's stars (median over ``--ground-frames`` frames).
+Sections of ``docs/seed003_distortion.md``.  Ground (section 1): the camera of ``paper_003`` (2048^2, 20 deg,
+magnitude 6.5) with each of the paper's six distortion presets, uncalibrated; ``--ground-frames`` frames of random
+sky (``starenv.datasets.pairs``), 0.05 px centroid noise, the stars split 8:2.  Residual = mean |corrected -
+reference| per axis on the test stars, evaluated at their noise-free distorted positions (the model's error, not the
+centroid noise), px.  The network is fitted in closed form (least squares) and trained the paper's way (torch, Adam
+lr 1e-4 with tau = 0.999, batch 128, ``--epochs``); the baselines are fitted to the same training stars.  Times: fit
+on all training stars, and the offsets of one frame's stars (median over up to 50 frames).
 
-On orbit (tables 3-4): ``leo_distortion`` (barrel + tangential + thin prism, ~3 px at the edge) and ``paper_003``
+On orbit (section 2): ``leo_distortion`` (barrel + tangential + thin prism, ~3 px at the edge) and ``paper_003``
 (a Legendre field of 0.7 px mean with no rotation-like part), their 550 km orbit at 1 frame/s, ``--orbit-frames``
 frames; ground weights for the warm starts: least squares on ``--ground-frames`` frames of random sky.  Each frame's
 stars (all taken as correctly identified) are corrected, the attitude solved from them (SVD), and the corrector
 learns (``learn_frame``, the pipeline's path).  Residual per axis on the
 frame's stars at their noise-free positions, two ways: against the truth, and after the attitude fit (the part no
 solved attitude can absorb).  Converged = the first frame from which the residual stays <= 0.04 px on both axes to
-the end.  Coverage (table 5): ``C_star`` (disc radius 96 px) over ``--coverage-starts`` random start times.
+the end.  Coverage (section 3): ``C_star`` (disc radius 96 px) over ``--coverage-starts`` random start times.
 
-In the loop (tables 6-7): ``paper_003`` (``--loop-steps`` steps) and ``leo_distortion`` (twice as many) rendered and
+In the loop (section 4): ``paper_003`` (``--loop-steps`` steps) and ``leo_distortion`` (twice as many) rendered and
 run by the tracking pipeline without a corrector, with the RLS one and with the paper's Adam one, seed 0; medians over
 the steps after the first 5 (``paper_003``) or the first half (``leo_distortion``).
 
@@ -29,7 +29,9 @@ the steps after the first 5 (``paper_003``) or the first half (``leo_distortion`
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -152,7 +154,8 @@ def orbit(scenario: str, n_frames: int, ground_frames: int) -> None:
     pairs = [orbit_pairs(sc, 0, i) for i in range(n_frames)]
     ground_pairs = [frame_pairs(sc, 1, i) for i in range(ground_frames)]
     gm, gr = (np.concatenate([getattr(p, k) for p in ground_pairs]) for k in ("measured", "reference"))
-    weights = "/tmp/_seed003_ground.npz"
+    folder = tempfile.TemporaryDirectory()
+    weights = str(Path(folder.name) / "ground.npz")
     LegendreModel(fit_least_squares(gm, gr, cam)).save(weights)
     print(f"\n## On orbit: {scenario}, {n_frames} frames at 1 frame/s\n")
     print("| learner | start | vs truth at the end (x / y px) | after attitude fit at the end | after attitude fit, "
@@ -177,6 +180,7 @@ def orbit(scenario: str, n_frames: int, ground_frames: int) -> None:
             print(f"| {learner} | {start} | {_fmt(truth[-1])} | {_fmt(fitted[-1])} | {_fmt(tail)} | "
                   f"{_converged(checked, truth)} | {_first(checked, fitted)} / {_converged(checked, fitted)} | "
                   f"{spent / n_frames * 1e3:.2f} |")
+    folder.cleanup()
 
 
 def star_coverage(starts: int) -> None:

@@ -143,7 +143,7 @@ def cmd_view(args) -> int:
     if not args.rrd and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         viewer = shutil.which("rerun")
         if viewer is None:
-            print("no Rerun viewer found (install starenv[viewer]); open the .rrd with any Rerun 0.41 viewer")
+            print("no `rerun` viewer on PATH (rerun-sdk installs it); open the .rrd with any Rerun 0.41 viewer")
         else:
             subprocess.Popen([viewer, str(rrd)])  # the viewer outlives this command
             print(f"opened the Rerun viewer on {rrd}")
@@ -173,7 +173,10 @@ def cmd_bench(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from starenv import __version__
+
     parser = argparse.ArgumentParser(prog="starenv", description="Star sensor simulator under dynamic conditions")
+    parser.add_argument("--version", action="version", version=f"starenv {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("scenarios", help="list the bundled scenarios").set_defaults(fn=cmd_scenarios)
     p = sub.add_parser("render", help="render one frame of a scenario to a PNG, truth overlaid")

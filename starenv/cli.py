@@ -173,10 +173,10 @@ def cmd_bench(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from starenv import __version__
+    import starenv
 
     parser = argparse.ArgumentParser(prog="starenv", description="Star sensor simulator under dynamic conditions")
-    parser.add_argument("--version", action="version", version=f"starenv {__version__}")
+    parser.add_argument("--version", action="version", version=f"starenv {starenv.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("scenarios", help="list the bundled scenarios").set_defaults(fn=cmd_scenarios)
     p = sub.add_parser("render", help="render one frame of a scenario to a PNG, truth overlaid")

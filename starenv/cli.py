@@ -200,7 +200,7 @@ def cmd_view(args) -> int:
     print(f"{meta['starenv.scenario']['name']}, seed {run['seed']}: {outcome.get('steps', '?')} steps, "
           f"{outcome.get('status', 'unfinished')}{': ' + outcome['error'] if outcome.get('error') else ''}")
     if outcome.get("reproduce"):
-        print(f"  reproduce: {outcome['reproduce']}  (scenario.toml: the starenv.scenario metadata record)")
+        print(f"  reproduce: {outcome['reproduce']}  (starenv export {mcap_path} --scenario scenario.toml writes it)")
     print(f"wrote {rrd}")
     if not args.rrd and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         viewer = shutil.which("rerun")

@@ -489,3 +489,34 @@ def test_foxglove_cameras_place_every_true_star(run):
             # the truth point is the trail centroid; at mid-exposure the star sits at xy_mid (+0.5 px origin)
             np.testing.assert_allclose(xy_foxglove, np.asarray(stars["xy_mid"]) + 0.5, atol=1e-6)
             assert head.calibrated.fx == k[0, 0]
+
+
+def test_rerun_review_holds_the_attitude_view_and_gyro_series(run):
+    """The live .rrd's 3-D arrows are the true body axes and head boresights written in ICRS (an independent
+    composition: attitude^-1 applied to the body axes and to mounting^-1 z), and every gyro sample is a point of
+    the gyro series at its own simulation time, in deg/s."""
+    import rerun as rr
+
+    tmp, logs = run
+    env = StarSensorEnv("paper_004", OVERRIDES)
+    arrows, gyro = [], {}
+    for chunk in rr.chunk.RrdReader(tmp / "live.rrd").stream().to_chunks():
+        batch = chunk.to_record_batch()
+        if chunk.entity_path == "/attitude/true":
+            arrows += [np.array(v.as_py()) for v in batch.column("Arrows3D:vectors")]
+        elif chunk.entity_path.startswith("/gyro/rate_dps/"):
+            axis = chunk.entity_path[-1]
+            for t, v in zip(batch.column("sim_time").cast("int64").to_pylist(), batch.column("Scalars:scalars"),
+                            strict=True):
+                gyro[axis, t] = v.as_py()[0]
+    assert len(arrows) == STEPS
+    for vectors, log in zip(arrows, logs, strict=True):
+        to_icrs = Rotation.from_quat(log.truth["attitude"]).inv()
+        bores = [to_icrs.apply(h.calibrated.mounting.inv().apply([0, 0, 1])) for h in env.scenario.heads]
+        np.testing.assert_allclose(vectors, np.vstack([to_icrs.apply(np.eye(3)), bores]), atol=1e-6)
+    samples = [(t, r) for log in logs for t, r in zip(log.obs["gyro"]["t"][: int(log.obs["gyro"]["count"])],
+                                                      log.obs["gyro"]["rate"], strict=False)]
+    assert len(gyro) == 3 * len(samples)
+    for t, rate in samples:
+        t_ns = int(round(t * 1e9))
+        np.testing.assert_allclose([gyro[a, t_ns] for a in "xyz"], np.degrees(rate), rtol=1e-12)

@@ -186,7 +186,7 @@ def headline(rows: list[dict]) -> str:
             swept = [r for r in cases if r["sweep_key"] == key and isinstance(r["sweep_value"], int | float)]
             limits = {p: working_limit([r for r in swept if r["pipeline"] == p])
                       for p in dict.fromkeys(r["pipeline"] for r in swept)}
-            order = sorted(limits, key=lambda p: -math.inf if limits[p] is None else -limits[p])
+            order = sorted(limits, key=lambda p: (math.inf if limits[p] is None else -limits[p], p))
             unit = key_unit(key)
             sweeps.append(f"{key}: " + ", ".join(
                 f"{p} {'none' if limits[p] is None else _fmt(limits[p]) + (' ' + unit if unit else '')}"
@@ -325,6 +325,7 @@ def write_report(bench, run_files: list[Path], out: Path) -> Path:
     lines = [f"# Benchmark report: {bench.name}", ""]
     if bench.description:
         lines += [bench.description, ""]
+    lines += [top]
     lines += [
         f"Bench file: `{bench.source}`.  {len(run_files)} runs, {sum(r['steps'] for r in rows)} scored steps.  "
         "Per-step scores: [`runs/`](runs/) (one JSON-lines file per run, its identity in the first line).  "
@@ -341,7 +342,6 @@ def write_report(bench, run_files: list[Path], out: Path) -> Path:
         lines += [f"Recordings: [`recordings/`](recordings/), {len(recorded)} MCAP files (Foxglove, or "
                   "`starenv view FILE.mcap` for a Rerun review).", ""]
     lines += [
-        top,
         tables,
         "## Plots",
         "",

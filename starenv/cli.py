@@ -194,8 +194,10 @@ def cmd_view(args) -> int:
     analytics_off()
     mcap_path = Path(args.recording)
     rrd = Path(args.rrd) if args.rrd else mcap_path.with_suffix(".rrd")
-    mcap_to_rrd(mcap_path, rrd)
     meta = read_metadata(mcap_path)
+    total = meta.get("starenv.outcome", {}).get("steps")
+    with _progress(int(total) if total else None, "building the review", args.quiet) as bar:
+        mcap_to_rrd(mcap_path, rrd, on_step=bar.update)
     run, outcome = meta["starenv.run"], meta.get("starenv.outcome", {})
     print(f"{meta['starenv.scenario']['name']}, seed {run['seed']}: {outcome.get('steps', '?')} steps, "
           f"{outcome.get('status', 'unfinished')}{': ' + outcome['error'] if outcome.get('error') else ''}")
@@ -295,6 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("recording", help="an MCAP file written by starenv run --record")
     p.add_argument("--rrd", default=None, metavar="FILE.rrd",
                    help="write the Rerun recording here and do not open the viewer (default: next to the MCAP file)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_view)
     p = sub.add_parser("bench", help="run a benchmark (scenarios x pipelines x seeds, sweeps) and write a report")
     p.add_argument("bench", help="bench file (.toml) or bundled bench name (e.g. bundled)")

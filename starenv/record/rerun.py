@@ -142,8 +142,9 @@ def boresights(heads) -> np.ndarray:
     return np.array([h.calibrated.mounting.inv().apply([0.0, 0.0, 1.0]) for h in heads]).reshape(-1, 3)
 
 
-def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike) -> Path:
-    """Build the Rerun recording of an MCAP recording; returns the .rrd path."""
+def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike, on_step=None) -> Path:
+    """Build the Rerun recording of an MCAP recording; returns the .rrd path.  ``on_step()`` (optional) is called
+    after each step is logged (a progress bar)."""
     from starenv.record.mcap import check_mcap, read_metadata, read_steps
 
     mcap_path = check_mcap(mcap_path)
@@ -162,6 +163,8 @@ def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike) -> Pa
     bores = boresights(scenario_mod.load(tomllib.loads(meta["starenv.scenario"]["toml"])).heads)
     for data in read_steps(mcap_path):
         log_step(rec, data, bores)
+        if on_step is not None:
+            on_step()
     rec.flush()
     rec.disconnect()
     return rrd_path

@@ -2,6 +2,7 @@
 is typed, ``starenv --version`` agrees with the metadata, and a built wheel carries the data (``STARENV_SLOW=1``)."""
 
 import os
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -45,7 +46,10 @@ def test_core_dependencies_name_the_viewer():
 
 @pytest.mark.skipif(os.environ.get("STARENV_SLOW") != "1", reason="builds a wheel (~1 min); set STARENV_SLOW=1")
 def test_wheel_carries_package_data(tmp_path):
-    subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "--no-build-isolation", "-q",
+    src = tmp_path / "src"  # a copy, so the build leaves nothing (build/, *.egg-info) in the source tree
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".git", "build", "*.egg-info", "recordings", "reports",
+                                                             ".*cache", ".hypothesis", "__pycache__", ".*venv"))
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "-q",
                     "-w", str(tmp_path)], check=True, cwd=tmp_path)
     (wheel,) = tmp_path.glob("starenv-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
@@ -63,3 +67,6 @@ def test_wheel_carries_package_data(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(site)},
                          capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "ok"
+    listed = subprocess.run([sys.executable, "-m", "starenv.cli", "scenarios"], cwd=tmp_path, capture_output=True,
+                            env={**os.environ, "PYTHONPATH": str(site)}, text=True, check=True).stdout
+    assert {line.split()[0] for line in listed.splitlines()} == SCENARIOS

@@ -493,17 +493,21 @@ def test_foxglove_cameras_place_every_true_star(run):
 
 def test_rerun_review_holds_the_attitude_view_and_gyro_series(run):
     """The live .rrd's 3-D arrows are the true body axes and head boresights written in ICRS (an independent
-    composition: attitude^-1 applied to the body axes and to mounting^-1 z), and every gyro sample is a point of
+    composition: attitude^-1 applied to the body axes and to mounting^-1 z), its true stars sit on their catalog
+    directions, and every gyro sample is a point of
     the gyro series at its own simulation time, in deg/s."""
     import rerun as rr
 
     tmp, logs = run
     env = StarSensorEnv("paper_004", OVERRIDES)
-    arrows, gyro = [], {}
+    arrows, gyro, sky = [], {}, []
     for chunk in rr.chunk.RrdReader(tmp / "live.rrd").stream().to_chunks():
         batch = chunk.to_record_batch()
         if chunk.entity_path == "/attitude/true":
             arrows += [np.array(v.as_py()) for v in batch.column("Arrows3D:vectors")]
+        elif chunk.entity_path == "/attitude/stars/truth":
+            sky += [(np.array(v.as_py()).reshape(-1, 3), labels.as_py()) for v, labels in
+                    zip(batch.column("Points3D:positions"), batch.column("Points3D:labels"), strict=True)]
         elif chunk.entity_path.startswith("/gyro/rate_dps/"):
             axis = chunk.entity_path[-1]
             for t, v in zip(batch.column("sim_time").cast("int64").to_pylist(), batch.column("Scalars:scalars"),
@@ -514,6 +518,15 @@ def test_rerun_review_holds_the_attitude_view_and_gyro_series(run):
         to_icrs = Rotation.from_quat(log.truth["attitude"]).inv()
         bores = [to_icrs.apply(h.calibrated.mounting.inv().apply([0, 0, 1])) for h in env.scenario.heads]
         np.testing.assert_allclose(vectors, np.vstack([to_icrs.apply(np.eye(3)), bores]), atol=1e-6)
+    # the true stars on the sky: their catalog directions, to within the trail centroid's offset from the
+    # mid-exposure position (a slow drift: well under 1 px = 42 arcsec = 2e-4 rad)
+    catalog = env.sensor.catalog
+    row = {int(h): i for i, h in enumerate(catalog.hip)}
+    assert len(sky) == STEPS
+    for (points, labels), log in zip(sky, logs, strict=True):
+        hips = [int(lab.removeprefix("HIP ")) for lab in labels]
+        assert hips == [int(i) for h in range(3) for i in log.truth["stars"][h]["catalog_id"]] and hips
+        np.testing.assert_allclose(points, catalog.unit[[row[i] for i in hips]], atol=2e-4)
     samples = [(t, r) for log in logs for t, r in zip(log.obs["gyro"]["t"][: int(log.obs["gyro"]["count"])],
                                                       log.obs["gyro"]["rate"], strict=False)]
     assert len(gyro) == 3 * len(samples)

@@ -12,7 +12,9 @@ Both paths log each step with :func:`log_step`, so they produce the same entitie
 * ``attitude/true`` and ``attitude/estimate``: 3-D arrows in ICRS (unit sphere): the body's +X, +Y, +Z axes (red,
   green, blue; the estimate's at 0.9 length and paler, so both stay visible when they coincide) and each head's
   boresight (the calibrated mounting's +Z; ``bore{h}``, white for the truth, grey for the estimate), from the
-  attitude ICRS -> body (conjugated: arrows are body directions written in ICRS);
+  attitude ICRS -> body (conjugated: arrows are body directions written in ICRS); ``attitude/stars/truth`` (green):
+  the true stars' trail centroids seen through the calibrated cameras at the true attitude, and
+  ``attitude/stars/detections`` (red): the detections at the estimated attitude, on the unit sphere with their ids;
 * ``gyro/rate_dps/{x,y,z}``: every gyro sample (deg/s, body frame) at its own time on ``sim_time`` (on ``frame`` all
   of a step's samples share the frame's index).
 
@@ -101,9 +103,23 @@ def _attitude_arrows(q: np.ndarray, boresights_body: np.ndarray, estimate: bool)
     return rr.Arrows3D(vectors=vectors, colors=colors, labels=labels, radii=0.01 if estimate else 0.02)
 
 
-def log_step(rec, data: StepData, boresights_body: np.ndarray | None = None) -> None:
+def _sky(cameras, q: np.ndarray, layers) -> tuple[np.ndarray, list[str]]:
+    """ICRS unit directions (n, 3) and labels of image points ``layers[h]`` (``Stars2D``) of each head, seen through
+    the calibrated ``cameras`` at attitude ``q`` ``[x, y, z, w]`` (ICRS -> body)."""
+    from scipy.spatial.transform import Rotation
+
+    body_to_icrs = Rotation.from_quat(q).inv()
+    dirs, labels = [np.zeros((0, 3))], []
+    for cam, stars in zip(cameras, layers, strict=True):
+        if len(stars.xy):
+            dirs.append(body_to_icrs.apply(cam.mounting.inv().apply(cam.unproject(stars.xy))))
+            labels += [f"HIP {i}" if i >= 0 else "" for i in stars.ids]
+    return np.vstack(dirs), labels
+
+
+def log_step(rec, data: StepData, cameras=None) -> None:
     """Log one step to the recording stream ``rec``: the one place both review paths write Rerun data.
-    ``boresights_body`` (heads, 3): each head's boresight in the body frame, for the 3-D attitude view."""
+    ``cameras``: the heads' calibrated cameras, for the 3-D attitude view (none: no 3-D view)."""
     import rerun as rr
 
     rec.set_time("frame", sequence=int(data.frame))
@@ -122,24 +138,25 @@ def log_step(rec, data: StepData, boresights_body: np.ndarray | None = None) -> 
             rec.log(f"metrics/{stage_of(key)}/{key}", rr.Scalars(float(value)))
     for level, text in data.logs:
         rec.log("log", rr.TextLog(text, level=LEVELS.get(level, "INFO")))
-    bores = np.zeros((0, 3)) if boresights_body is None else boresights_body
-    if data.heads:  # not the closing entry of a run stopped by an error
+    if data.heads and cameras is not None:  # not the closing entry of a run stopped by an error
+        bores = np.array([cam.mounting.inv().apply([0.0, 0.0, 1.0]) for cam in cameras]).reshape(-1, 3)
         rec.log("attitude/true", _attitude_arrows(data.attitude_true, bores, estimate=False))
+        dirs, labels = _sky(cameras, data.attitude_true, [h.truth for h in data.heads])
+        rec.log("attitude/stars/truth", rr.Points3D(dirs, labels=labels, colors=COLORS["truth"], radii=0.006))
         if data.attitude_estimate is not None:
             rec.log("attitude/estimate", _attitude_arrows(data.attitude_estimate, bores, estimate=True))
+            dirs, labels = _sky(cameras, data.attitude_estimate, [h.detections for h in data.heads])
+            rec.log("attitude/stars/detections", rr.Points3D(dirs, labels=labels, colors=COLORS["detections"],
+                                                             radii=0.004))
         else:
             rec.log("attitude/estimate", rr.Clear(recursive=False))
+            rec.log("attitude/stars/detections", rr.Clear(recursive=False))
     if len(data.gyro_t):
         times = rr.TimeColumn("sim_time", duration=np.round(np.asarray(data.gyro_t) * 1e9).astype("timedelta64[ns]"))
         frames = rr.TimeColumn("frame", sequence=np.full(len(data.gyro_t), int(data.frame)))
         for axis, values in zip("xyz", np.degrees(np.asarray(data.gyro_rate)).T, strict=True):
             rec.send_columns(f"gyro/rate_dps/{axis}", indexes=[frames, times],
                              columns=rr.Scalars.columns(scalars=values))
-
-
-def boresights(heads) -> np.ndarray:
-    """(heads, 3) boresight (+Z) of each head's calibrated camera in the body frame."""
-    return np.array([h.calibrated.mounting.inv().apply([0.0, 0.0, 1.0]) for h in heads]).reshape(-1, 3)
 
 
 def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike, on_step=None) -> Path:
@@ -160,9 +177,9 @@ def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike, on_st
     name = f"{meta['starenv.scenario']['name']} seed {meta['starenv.run']['seed']}"
     rrd_path = Path(rrd_path)
     rec = open_stream(rrd_path, str(uuid.UUID(bytes=digest.digest()[:16])), n_heads, name)
-    bores = boresights(scenario_mod.load(tomllib.loads(meta["starenv.scenario"]["toml"])).heads)
+    cameras = [h.calibrated for h in scenario_mod.load(tomllib.loads(meta["starenv.scenario"]["toml"])).heads]
     for data in read_steps(mcap_path):
-        log_step(rec, data, bores)
+        log_step(rec, data, cameras)
         if on_step is not None:
             on_step()
     rec.flush()
@@ -182,7 +199,7 @@ class RerunRecorder:
     def start(self, env, seed: int, pipeline) -> None:
         sc = env.unwrapped.scenario
         self._sizes = [(h.camera.height, h.camera.width) for h in sc.heads]
-        self._bores = boresights(sc.heads)
+        self._cameras = env.unwrapped.cameras
         self._period_ns = int(round(sc.frame_period_s * 1e9))
         self._last = None
         agents = None if pipeline is None else pipeline.describe()
@@ -193,7 +210,7 @@ class RerunRecorder:
 
     def step(self, log) -> None:
         data = from_step_log(log, self._sizes)
-        log_step(self._rec, data, self._bores)
+        log_step(self._rec, data, self._cameras)
         self._last = data
 
     def close(self, error: BaseException | None = None) -> None:

@@ -51,6 +51,9 @@ Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
   detectable stars, 0-1), ``false_id_rate`` (wrong / claimed, 0-1), ``ids_correct`` / ``ids_wrong`` (counts),
   ``solved`` (>= 3 correct ids and none wrong), ``prediction_error_px_mean`` / ``prediction_error_px_max`` (px,
   predicted vs true mid-exposure positions), ``predictions_scored`` (count).
+
+Known limit: in a Gymnasium vector env, a step where one sub-env's estimate is available and another's is not fails
+while the vector env merges the infos (``scores["attitude"]`` is a dict in one and None in the other).
 """
 
 from __future__ import annotations

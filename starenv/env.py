@@ -27,7 +27,35 @@ detection's direction); ``predicted_xy``
 
 Reward: ``max(0, 1 - error / threshold)`` for an available estimate (1 when exact, 0 at or beyond the scenario's
 ``availability_threshold_arcsec``), 0 when unavailable.  ``terminated`` once ``lost_after_steps`` consecutive steps
-had no available estimate within the threshold ("lost"); ``truncated`` after the scenario's last frame.
+had no available estimate within the threshold ("lost"); ``truncated`` after the scenario's last frame (the bundled
+ids register the same count as ``max_episode_steps``: ``n_steps - 1`` steps).
+
+Bounds.  Every box is finite so that ``observation_space.sample()`` works: times lie in ``[0, T]`` with ``T`` the
+episode's last mid-exposure time plus one frame period (``time_horizon_s``; an env stepped past truncation leaves
+it), gyro rates in ``[-GYRO_RATE_BOUND, GYRO_RATE_BOUND]`` rad/s (3600 deg/s; a bound on the space, the gyro model
+does not saturate).
+
+Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
+
+* ``truth`` (of the returned observation's frame): ``frame`` int (index), ``time_s`` float (s, mid-exposure),
+  ``attitude`` float64 (4,) ``[x, y, z, w]`` (ICRS -> body at mid-exposure), ``body_rate`` float64 (3,) (rad/s, body
+  frame), ``dropped`` list of bool per head, ``stars`` list per head of dicts of arrays, one row per star on the
+  frame: ``catalog_id`` (HIP number), ``magnitude`` (Hipparcos Hp), ``xy_mid`` / ``xy_centroid`` / ``xy_start`` /
+  ``xy_end`` (n, 2) px (distorted pixel coordinates; mid-exposure position, trail centroid, trail ends),
+  ``electrons`` and ``peak_electrons`` (e-; total and brightest pixel), ``detectable`` bool.
+* ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int,
+  ``available`` bool, ``within_threshold`` bool (error < ``availability_threshold_arcsec``), ``attitude`` (None when
+  unavailable) ``{"total_arcsec": float, "heads": [{"pitch_arcsec", "yaw_arcsec", "roll_arcsec",
+  "cross_boresight_arcsec"}]}`` (arcsec; the error rotation in each head's camera frame: pitch about +X, yaw about
+  +Y, roll about the boresight +Z, absolute values), ``heads`` a list per head of star scores (None where the action
+  gave nothing to score): ``centroid_error_px_mean`` / ``centroid_error_px_max`` (px, detections matched to true
+  trail centroids within 3 px), ``detection_recall`` / ``detection_precision`` (0-1), ``id_rate`` (correct ids /
+  detectable stars, 0-1), ``false_id_rate`` (wrong / claimed, 0-1), ``ids_correct`` / ``ids_wrong`` (counts),
+  ``solved`` (>= 3 correct ids and none wrong), ``prediction_error_px_mean`` / ``prediction_error_px_max`` (px,
+  predicted vs true mid-exposure positions), ``predictions_scored`` (count).
+
+Known limit: in a Gymnasium vector env, a step where one sub-env's estimate is available and another's is not fails
+while the vector env merges the infos (``scores["attitude"]`` is a dict in one and None in the other).
 """
 
 from __future__ import annotations
@@ -44,6 +72,8 @@ from starenv import scenario as scenario_mod
 from starenv.agents.base import MAX_STARS, SensorInfo
 from starenv.scoring import attitude_error, calibrated_positions, score_stars
 from starenv.sim.sensor import Frame, StarSensor
+
+GYRO_RATE_BOUND = math.radians(3600.0)  # rad/s, the observation space's bound on each gyro rate component
 
 
 class StarSensorEnv(gym.Env):
@@ -68,20 +98,20 @@ class StarSensorEnv(gym.Env):
         height = max(h.camera.height for h in sc.heads)
         width = max(h.camera.width for h in sc.heads)
         self.max_gyro = int(math.ceil(sc.gyro.rate_hz / sc.frame_rate_hz)) + 1
-        big = np.finfo(np.float64).max
+        horizon = self.time_horizon_s
         self.observation_space = spaces.Dict(
             {
                 "frames": spaces.Box(0, 65535, (n_heads, height, width), np.uint16),
                 "frame_valid": spaces.Box(0, 1, (n_heads,), np.int8),
                 "gyro": spaces.Dict(
                     {
-                        "t": spaces.Box(0.0, big, (self.max_gyro,), np.float64),
-                        "rate": spaces.Box(-big, big, (self.max_gyro, 3), np.float64),
+                        "t": spaces.Box(0.0, horizon, (self.max_gyro,), np.float64),
+                        "rate": spaces.Box(-GYRO_RATE_BOUND, GYRO_RATE_BOUND, (self.max_gyro, 3), np.float64),
                         "count": spaces.Box(0, self.max_gyro, (), np.int64),
                     }
                 ),
-                "time_s": spaces.Box(0.0, big, (), np.float64),
-                "exposure_s": spaces.Box(0.0, big, (), np.float64),
+                "time_s": spaces.Box(0.0, horizon, (), np.float64),
+                "exposure_s": spaces.Box(0.0, horizon, (), np.float64),
             }
         )
         self.action_space = spaces.Dict(
@@ -101,6 +131,12 @@ class StarSensorEnv(gym.Env):
         self._steps = 0
         self._lost_steps = 0
 
+    @property
+    def time_horizon_s(self) -> float:
+        """Upper bound of every time in an episode's observations (s): the last frame's end plus one frame period."""
+        sc = self.scenario
+        return (sc.n_steps + 1) * sc.frame_period_s + sc.exposure_s
+
     def null_action(self) -> dict:
         """A complete action that claims nothing (unavailable, empty star lists): a template to fill in, and what
         vector environments need since they batch every key of the action space."""
@@ -118,6 +154,11 @@ class StarSensorEnv(gym.Env):
         return SensorInfo(self.cameras, sc.gyro.rate_hz, sc.epoch)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode: returns ``(observation of frame 0, {"truth": ...})``.
+
+        ``seed`` (int) reseeds every noise source (the first reset without one uses the scenario's ``seed``);
+        ``options`` is accepted for the Gymnasium signature and ignored.
+        """
         if seed is None and self._np_random is None:
             seed = self.scenario.seed
         super().reset(seed=seed)
@@ -128,6 +169,11 @@ class StarSensorEnv(gym.Env):
         return self._observation(self._frame), {"truth": self._truth(self._frame)}
 
     def step(self, action):
+        """Score ``action`` (the estimate for the last observed frame), then simulate the next frame.
+
+        Returns ``(observation, reward, terminated, truncated, info)``; ``info`` holds ``truth`` (of the returned
+        frame) and ``scores`` (of the action); see the module docstring for every key and unit.
+        """
         if self._frame is None:
             raise RuntimeError("call reset() before step()")
         parsed = parse_action(action, len(self.scenario.heads))
@@ -144,6 +190,8 @@ class StarSensorEnv(gym.Env):
         return self._observation(self._frame), float(reward), terminated, truncated, info
 
     def render(self):
+        """``render_mode="rgb_array"``: uint8 (H, W, 3) mosaic of the last frame's heads (a display stretch, not
+        radiometry), true star trails overlaid; None in any other mode or before ``reset``."""
         if self.render_mode != "rgb_array" or self._frame is None:
             return None
         from starenv.view import mosaic, overlay

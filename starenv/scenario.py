@@ -5,7 +5,7 @@ an unknown key, a wrong type, a missing field or an out-of-range value raises on
 file, the dotted key path and the expected form.  ``overrides`` (dotted key paths, list items by index, e.g.
 ``{"motion.rate_dps": [0, 0, 10], "heads.0.width": 256}``) are applied to the file's contents before validation.
 
-Layout (see the bundled files in ``scenarios/`` for complete, commented examples)::
+Layout (see the bundled files in ``starenv/data/scenarios/`` for complete, commented examples)::
 
     name, description, seed, duration_s, frame_rate_hz, exposure_s, mag_limit, epoch,
     sky_mag_per_arcsec2, lost_after_steps, availability_threshold_arcsec
@@ -25,6 +25,7 @@ import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +75,7 @@ from starenv.sim.optics import (
 from starenv.sim.photometry import Photometry, StrayLight
 from starenv.sim.sensor import HeadSpec
 
-SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+SCENARIO_DIR = Path(str(resources.files("starenv").joinpath("data", "scenarios")))  # package data
 
 
 class ScenarioError(ConfigError):

@@ -22,6 +22,7 @@ from starenv.bench.spec import BENCH_DIR, BenchError, Sweep, load_bench, parse_b
 from starenv.cli import main
 from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
+from starenv.scenario import SCENARIO_DIR
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -104,7 +105,7 @@ def test_identity_hash_changes_with_every_input_and_only_then(tmp_path):
     steps = parse_bench(SMALL.replace("steps = 3", "steps = 4")).runs
     rates = parse_bench(SMALL.replace("values = [0, 4]", "values = [0, 5]")).runs
     copy = tmp_path / "paper_000.toml"
-    copy.write_text((ROOT / "scenarios" / "paper_000.toml").read_text() + "\n# an edited copy\n")
+    copy.write_text((SCENARIO_DIR / "paper_000.toml").read_text() + "\n# an edited copy\n")
     edited = parse_bench(SMALL.replace('"paper_000"', f'"{copy}"')).runs
     digests = [{r.digest for r in runs} for runs in (base, seeds, steps, rates, edited)]
     assert all(len(d) == 4 for d in digests)

@@ -1,6 +1,6 @@
 """Benchmark files: scenarios x agent pipelines x seeds, with one scenario key swept per run group.
 
-A bench file is TOML (bundled ones live in ``benches/`` at the repository root and are named without ``.toml``)::
+A bench file is TOML (bundled ones are package data in ``starenv/data/benches/``, named without ``.toml``)::
 
     name = "my-bench"                 # optional, defaults to the file's stem
     description = "..."               # optional
@@ -43,13 +43,14 @@ import json
 import math
 import tomllib
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from starenv import scenario as scenario_mod
 from starenv.config import ConfigError, Table, is_number, parse_toml
 
-BENCH_DIR = Path(__file__).resolve().parent.parent.parent / "benches"
+BENCH_DIR = Path(str(resources.files("starenv").joinpath("data", "benches")))  # package data
 MCAP_RECORDER = "starenv.record.mcap:McapRecorder"
 PRESETS: dict[str, dict[str, str]] = {
     "scenario": {},
@@ -160,7 +161,7 @@ class Bench:
 
 
 def resolve_bench(bench: str | Path) -> Path:
-    """Path of a bench file given by path or by the name of a bundled one (``bundled`` -> ``benches/bundled.toml``)."""
+    """Path of a bench file given by path or by the name of a bundled one (``bundled``)."""
     path = Path(bench)
     if path.suffix != ".toml" and (BENCH_DIR / f"{bench}.toml").is_file():
         return BENCH_DIR / f"{bench}.toml"

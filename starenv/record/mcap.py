@@ -1,9 +1,20 @@
 """MCAP recordings of episodes in Foxglove's well-known protobuf schemas, readable by Foxglove and Rerun.
 
-Channels (log times: integer ns of simulation time, the frame's mid-exposure; never wall clock):
+Channels (log times and header stamps: integer ns, the frame's mid-exposure simulation time placed on the scenario's
+epoch, never wall clock.  Simulation time 0 is the scenario's ``epoch`` read as a Julian epoch, J2000.0 (2000-01-01
+12:00:00) + (epoch - 2000) x 365.25 days, written as Unix time with the TT-UTC offset (~69 s) and leap seconds
+ignored: ``epoch = 2026.0`` puts frame 0 at 2026-01-01T00:00:00 + its mid-exposure.  The offset is the ``starenv.run``
+metadata's ``time_origin_unix_ns``; the ``/scores`` and ``/gyro`` payloads keep simulation seconds):
 
 * ``/head{h}/image``: ``foxglove.RawImage``, ``mono16`` little-endian, the frame as the sensor delivered it (none on a
   dropped frame);
+* ``/head{h}/calibration``: ``foxglove.CameraCalibration``, frame ``head{h}``: the calibrated (sensor-known) pinhole
+  intrinsics with the principal point + 0.5 px (Foxglove's pixel origin, below), ``plumb_bob`` coefficients
+  ``[k1, k2, p1, p2, k3]`` for a Brown-Conrady head, no coefficients for other distortion models (seed 000's per-axis
+  radial and seed 003's Legendre field have no Foxglove equivalent: their images are shown undistorted-as-pinhole);
+* ``/head{h}/mounting``: ``foxglove.FrameTransform`` parent ``body``, child ``head{h}``: the calibrated mounting
+  (camera axes: +Z boresight, +X along columns, +Y along rows, Foxglove's optical-frame convention), i.e. the inverse
+  of the body -> camera rotation.  Calibration and mounting are written with every step so that seeking finds them;
 * ``/head{h}/truth``, ``/head{h}/detections``, ``/head{h}/predictions``: ``foxglove.ImageAnnotations``: the true
   stars' trail centroids, the pipeline's detections and its predicted positions as points, with a ``HIP n`` label on
   every point that carries a catalog id (true stars, identified detections, predictions).  Foxglove's image
@@ -36,6 +47,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.Log_pb2 import Log
@@ -52,11 +64,21 @@ from mcap_protobuf.schema import register_schema
 import starenv
 from starenv.record import messages
 from starenv.record.step import ERROR, HeadData, Stars2D, StepData, from_step_log, time_ns
+from starenv.sim.optics import BrownConrady
 
 MAGIC = b"\x89MCAP0\r\n"
 PIXEL_ORIGIN = 0.5  # Foxglove/Rerun image coordinates = starenv pixel coordinates + 0.5
 LAYERS = {"truth": (0.2, 0.9, 0.2), "detections": (1.0, 0.3, 0.2), "predictions": (0.2, 0.7, 1.0)}  # RGB
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+J2000_UNIX_S = 946_728_000  # 2000-01-01T12:00:00 as Unix time (s)
+JULIAN_YEAR_S = 365.25 * 86_400
+
+
+def time_origin_ns(epoch: float) -> int:
+    """Unix time (ns) of simulation time 0: the scenario's ``epoch`` (Julian year), as the module docstring says."""
+    return int(round((J2000_UNIX_S + (float(epoch) - 2000.0) * JULIAN_YEAR_S) * 1e9))
 
 
 def _stamp(msg, t_ns: int) -> None:
@@ -95,6 +117,28 @@ def _stars(msg: ImageAnnotations) -> Stars2D:
     return Stars2D(xy - PIXEL_ORIGIN, ids)
 
 
+def camera_messages(cameras, t_ns: int) -> list[tuple[str, object]]:
+    """Each head's ``foxglove.CameraCalibration`` and body -> head ``FrameTransform`` (see the module docstring)."""
+    out: list[tuple[str, object]] = []
+    for h, cam in enumerate(cameras):
+        cx, cy = cam.cx + PIXEL_ORIGIN, cam.cy + PIXEL_ORIGIN
+        cal = CameraCalibration(frame_id=f"head{h}", width=cam.width, height=cam.height,
+                                K=[cam.fx, 0.0, cx, 0.0, cam.fy, cy, 0.0, 0.0, 1.0],
+                                R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                                P=[cam.fx, 0.0, cx, 0.0, 0.0, cam.fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+        d = cam.distortion
+        if isinstance(d, BrownConrady):
+            cal.distortion_model, cal.D[:] = "plumb_bob", [d.k1, d.k2, d.p1, d.p2, d.k3]
+        _stamp(cal, t_ns)
+        out.append((f"/head{h}/calibration", cal))
+        tf = FrameTransform(parent_frame_id="body", child_frame_id=f"head{h}")
+        _stamp(tf, t_ns)
+        x, y, z, w = cam.mounting.inv().as_quat()  # head axes in body coordinates
+        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = float(x), float(y), float(z), float(w)
+        out.append((f"/head{h}/mounting", tf))
+    return out
+
+
 def _transform(q: np.ndarray, child: str, t_ns: int) -> FrameTransform:
     msg = FrameTransform(parent_frame_id="icrs", child_frame_id=child)
     _stamp(msg, t_ns)
@@ -109,9 +153,9 @@ def _log(level: int, text: str, t_ns: int) -> Log:
     return msg
 
 
-def encode_step(data: StepData) -> list[tuple[str, object]]:
-    """The (topic, protobuf message) pairs of one step, in a fixed order."""
-    t = data.time_ns
+def encode_step(data: StepData, origin_ns: int = 0) -> list[tuple[str, object]]:
+    """The (topic, protobuf message) pairs of one step, in a fixed order, stamped ``origin_ns + data.time_ns``."""
+    t = origin_ns + data.time_ns
     out: list[tuple[str, object]] = []
     for h, head in enumerate(data.heads):
         if head.image is not None:
@@ -121,7 +165,7 @@ def encode_step(data: StepData) -> list[tuple[str, object]]:
     out.append(("/attitude/true", _transform(data.attitude_true, "body", t)))
     if data.attitude_estimate is not None:
         out.append(("/attitude/estimate", _transform(data.attitude_estimate, "body_estimate", t)))
-    scores = messages.encode_scores(data.frame, t * 1e-9, data.source, data.scores, data.record)
+    scores = messages.encode_scores(data.frame, data.time_ns * 1e-9, data.source, data.scores, data.record)
     out.append(("/scores", scores))
     gyro = messages.classes()["GyroSamples"](frame=data.frame, t_s=data.gyro_t.tolist(),
                                              rate_x_rad_s=data.gyro_rate[:, 0].tolist(),
@@ -176,6 +220,8 @@ class McapRecorder:
         base = env.unwrapped
         sc = base.scenario
         self._sizes = [(h.camera.height, h.camera.width) for h in sc.heads]
+        self._cameras = base.cameras
+        self._origin_ns = time_origin_ns(sc.epoch)
         self._period_ns = time_ns(sc.frame_period_s)
         self._seed = int(seed)
         self._agents = None if pipeline is None else pipeline.describe()
@@ -189,6 +235,7 @@ class McapRecorder:
         self._writer.add_metadata("starenv.scenario", {"name": sc.name, "toml": sc.to_toml()})
         self._writer.add_metadata("starenv.run", {
             "seed": str(self._seed), "heads": str(len(sc.heads)), "starenv_version": starenv.__version__,
+            "epoch": repr(float(sc.epoch)), "time_origin_unix_ns": str(self._origin_ns),
             "pipeline": json.dumps(self._agents),
             "pipeline_class": "none" if pipeline is None else f"{type(pipeline).__module__}:{type(pipeline).__name__}",
         })
@@ -210,9 +257,10 @@ class McapRecorder:
                     self._failed = exc
 
     def write(self, data: StepData) -> None:
-        """Write one step (log time ``data.time_ns``)."""
-        for topic, msg in encode_step(data):
-            self._write(topic, msg, data.time_ns)
+        """Write one step (log time: the time origin + ``data.time_ns``)."""
+        t = self._origin_ns + data.time_ns
+        for topic, msg in encode_step(data, self._origin_ns) + camera_messages(self._cameras, t):
+            self._write(topic, msg, t)
         self._file.flush()  # every chunk completed by this step goes to the file now
         self._steps += 1
         self._last_ns = data.time_ns
@@ -247,7 +295,7 @@ class McapRecorder:
             status = "error"
             t = 0 if self._last_ns is None else self._last_ns + self._period_ns  # the step that failed
             text = f"frame {self._steps}: run stopped by {type(error).__name__}: {error}"
-            self._write("/log", _log(ERROR, text, t), t)
+            self._write("/log", _log(ERROR, text, self._origin_ns + t), self._origin_ns + t)
         self._writer.add_metadata("starenv.outcome", {
             "status": status, "steps": str(self._steps),
             "error": "" if error is None else f"{type(error).__name__}: {error}",
@@ -317,21 +365,22 @@ def read_steps(path: str | os.PathLike) -> Iterator[StepData]:
     """The steps of a finished recording, in time order (messages without scores, e.g. the error that stopped a run,
     come back as a step of their own, numbered after the last scored one)."""
     path = check_mcap(path)
-    n_heads = int(read_metadata(path)["starenv.run"]["heads"])
+    run = read_metadata(path)["starenv.run"]
+    n_heads, origin = int(run["heads"]), int(run.get("time_origin_unix_ns", 0))  # older files: 0
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         group: list[tuple[str, object]] = []
         t_group, frame = None, -1
         for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
             if t_group is not None and message.log_time != t_group:
-                step = _step_from(group, t_group, n_heads, frame + 1)
+                step = _step_from(group, t_group - origin, n_heads, frame + 1)
                 frame = step.frame
                 yield step
                 group = []
             t_group = message.log_time
             group.append((channel.topic, decoded))
         if group:
-            yield _step_from(group, t_group, n_heads, frame + 1)
+            yield _step_from(group, t_group - origin, n_heads, frame + 1)
 
 
 def read_partial(path: str | os.PathLike) -> dict[str, int]:

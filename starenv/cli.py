@@ -13,6 +13,9 @@ import numpy as np
 
 from starenv import scenario as scenario_mod
 
+TRUST_HELP = ("let agents ('module:Class' in the scenario, bench file or --agent) load from this module prefix outside "
+              "starenv: its code will run (repeatable)")
+
 
 def _overrides(pairs: list[str]) -> dict:
     """``key.path=VALUE`` pairs; VALUE is parsed as JSON when it can be (numbers, lists), else kept as a string."""
@@ -78,7 +81,7 @@ def cmd_run(args) -> int:
     if args.pipeline != "none":
         from starenv.agents.pipeline import Pipeline
 
-        pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent))
+        pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent), trust=tuple(args.trust))
     sc = env.scenario
     observers = []
     if args.record:
@@ -160,7 +163,7 @@ def cmd_bench(args) -> int:
     for module in ("tqdm", "matplotlib"):
         if importlib.util.find_spec(module) is None:  # fail before the runs, not at the report after them
             raise ValueError(f"starenv bench needs {module} (the 'report' extra: pip install 'starenv[report]')")
-    bench = load_bench(args.bench)
+    bench = load_bench(args.bench, trust=tuple(args.trust))
     check_writable(Path(args.out))
     if args.jobs is not None and args.jobs < 1:
         raise ValueError(f"--jobs: expected an integer >= 1, got {args.jobs}")
@@ -194,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--agent", action="append", default=[], metavar="ROLE=module:Class",
                    help="replace one agent of the pipeline (roles: predictor, deblurrer, detector, corrector, "
                         "identifier, solver; ROLE=none empties an optional role)")
+    p.add_argument("--trust", action="append", default=[], metavar="MODULE_PREFIX", help=TRUST_HELP)
     p.add_argument("--record", default=None, metavar="FILE.mcap",
                    help="record the episode to an MCAP file (Foxglove schemas; open with Foxglove or starenv view)")
     p.add_argument("--rrd", default=None, metavar="FILE.rrd", help="record the episode to a Rerun .rrd file")
@@ -210,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--trust", action="append", default=[], metavar="MODULE_PREFIX", help=TRUST_HELP)
     p.set_defaults(fn=cmd_bench)
     args = parser.parse_args(argv)
     try:

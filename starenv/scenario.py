@@ -67,6 +67,16 @@ class ScenarioError(ConfigError):
     """A scenario file (or override) that does not describe a valid mission."""
 
 
+# Bounds on what one scenario may ask of the simulator, checked at load (before anything is allocated).
+MAX_TRAIL_PX = 1024.0  # longest star trail in one exposure (render time and memory grow with its square)
+MAX_FRAME_PIXELS = 2**25  # pixels of one step's frames, all heads (~12 bytes each while a frame is made)
+MAX_EPISODE_PIXELS = 10**12  # frames x pixels per frame over an episode (render time)
+MAX_STAR_INSTANTS = 2**23  # stars that may cross a frame x exposure instants (the renderer's path arrays)
+# Hipparcos-2 stars with Hp <= m for m = -2 .. 14 (counted from the bundled catalogue), to bound stars in view.
+HIP_COUNT_AT_MAG = (0, 1, 2, 15, 46, 165, 480, 1471, 4559, 13943, 37622, 78352, 106261, 114825, 117325, 117915,
+                    117953)
+GALACTIC_EXCESS = 3.0  # star density in the galactic plane over the sky's mean, bounding the count in one cone
+
 DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre")
 
 
@@ -283,6 +293,42 @@ def parse_pipeline(tbl: Table | None) -> PipelineSpec:
     return PipelineSpec(agents, options, limit)
 
 
+def _check_bounds(source: str, duration: float, frame_rate: float, exposure: float, mag_limit: float,
+                  heads: list[HeadSpec], trajectory: Trajectory) -> None:
+    """Refuse a scenario whose frames, trails or episode would need more memory or time than the bounds allow."""
+    pixels = sum(h.camera.width * h.camera.height for h in heads)
+    if pixels > MAX_FRAME_PIXELS:
+        raise ScenarioError(f"{source}: heads: expected at most {MAX_FRAME_PIXELS} pixels per step over all heads "
+                            f"(e.g. two 4096 x 4096 heads), got {pixels}")
+    steps = math.floor(duration * frame_rate + 1e-9)
+    if steps < 2:
+        raise ScenarioError(f"{source}: duration_s: expected at least two frame periods "
+                            f"(>= {2.0 / frame_rate:g} s: a step scores frame k while frame k + 1 is made), "
+                            f"got {duration:g} s")
+    if steps * pixels > MAX_EPISODE_PIXELS:
+        raise ScenarioError(f"{source}: duration_s: expected frames x pixels per frame <= {MAX_EPISODE_PIXELS:.0e} "
+                            f"(render time), got {steps} frames x {pixels} px = {steps * pixels:.3g}")
+    rate = trajectory.motion.max_rate(0.0, duration)
+    n_mag = HIP_COUNT_AT_MAG[min(len(HIP_COUNT_AT_MAG) - 1, max(0, math.ceil(mag_limit) + 2))]
+    for i, h in enumerate(heads):
+        cam = h.camera
+        window = exposure + h.detector.line_time_s * (cam.height - 1)
+        px_per_rad = max(cam.fx, cam.fy) * (1.0 + math.tan(cam.half_diagonal) ** 2)  # the renderer's bound
+        trail = rate * window * px_per_rad
+        if not trail <= MAX_TRAIL_PX:
+            raise ScenarioError(
+                f"{source}: motion: expected star trails of at most {MAX_TRAIL_PX:g} px in one exposure, got "
+                f"{trail:.4g} px on heads.{i} (body rate up to {math.degrees(rate):.4g} deg/s x {window:g} s x "
+                f"{px_per_rad:.4g} px/rad): lower the rate, the exposure or the focal length")
+        instants = max(1, math.ceil(trail / min(cam.psf_sigma_px, 0.5)))
+        cone = min(math.pi, cam.half_diagonal + rate * window + 0.01)
+        stars = math.ceil(GALACTIC_EXCESS * n_mag * 0.5 * (1.0 - math.cos(cone))) + 1
+        if stars * instants > MAX_STAR_INSTANTS:
+            raise ScenarioError(
+                f"{source}: mag_limit: expected stars in view x render instants <= {MAX_STAR_INSTANTS}, got up to "
+                f"{stars} stars x {instants} instants on heads.{i}: lower mag_limit, the field or the trail length")
+
+
 @dataclass
 class Scenario:
     """A validated mission: timing, motion, gyro, drops and camera heads, plus its source for reproduction."""
@@ -380,6 +426,7 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
     drops = dataclass_from_table(top.table("drops"), DropModel)
     pipeline = parse_pipeline(top.table("pipeline"))
     top.finish()
+    _check_bounds(source, duration, frame_rate, exposure, mag_limit, heads, trajectory)
     return Scenario(
         name, description, seed, duration, frame_rate, exposure, mag_limit, epoch, sky, lost_after, avail,
         trajectory, gyro, drops, heads, pipeline, source, data,

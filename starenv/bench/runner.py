@@ -16,7 +16,6 @@ Workers return their records to the driver, which writes the files.  With record
 
 from __future__ import annotations
 
-import importlib
 import json
 import os
 import sys
@@ -27,7 +26,7 @@ from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
-from starenv.bench.spec import BenchError, RunSpec
+from starenv.bench.spec import MCAP_RECORDER, BenchError, RunSpec
 
 LATENCY_PREFIX = "latency_"
 
@@ -44,19 +43,22 @@ class RunResult:
 
 
 def execute(run: RunSpec, recording: str | None = None, recorder: str | None = None) -> RunResult:
-    """Run one episode; ``recorder`` ("module:Callable") is called with the ``recording`` path for an Observer."""
+    """Run one episode; with a ``recorder`` (``MCAP_RECORDER``) it is recorded to the ``recording`` path."""
     from starenv import scenario as scenario_mod
     from starenv.env import StarSensorEnv
     from starenv.episode import run_episode
 
     scenario = scenario_mod.load(run.scenario_data(), run.overrides)
     env = StarSensorEnv(scenario.data)
-    pipeline = run.pipeline.build(scenario)
+    pipeline = run.pipeline.build(scenario, run.trust)
     observers = []
     if recorder is not None and recording is not None:
-        module, _, attr = recorder.partition(":")
+        if recorder != MCAP_RECORDER:
+            raise BenchError(f"recorder {recorder!r}: the only recorder is {MCAP_RECORDER!r}")
+        from starenv.record.mcap import McapRecorder
+
         Path(recording).parent.mkdir(parents=True, exist_ok=True)
-        observers.append(getattr(importlib.import_module(module), attr)(recording))
+        observers.append(McapRecorder(recording))
     result = run_episode(env, pipeline, seed=run.seed, steps=run.steps, observers=observers)
     return RunResult(run.run_id, result.records, [int(d) for d in result.dropped], result.lost_at, result.wall_s)
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -387,6 +388,9 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
     """Load, override and validate a scenario (bundled name, path, or an already-parsed TOML dict)."""
     if isinstance(scenario, dict):
         source, data = "<scenario>", copy.deepcopy(scenario)
+    elif not isinstance(scenario, str | os.PathLike):
+        raise ScenarioError(f"scenario: expected a bundled scenario name, a .toml path or a parsed scenario dict, "
+                            f"got {type(scenario).__name__} {scenario!r}")
     else:
         path = resolve(scenario)
         source = str(path)

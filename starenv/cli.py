@@ -1,5 +1,5 @@
 """Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``,
-``starenv bench BENCH``, ``starenv view FILE``."""
+``starenv bench BENCH``, ``starenv view FILE``, ``starenv recover FILE.mcap.partial``."""
 
 from __future__ import annotations
 
@@ -128,15 +128,25 @@ def cmd_view(args) -> int:
     import os
     import shutil
     import subprocess
+    import tempfile
 
-    from starenv.record.mcap import read_metadata
+    from starenv.record.mcap import read_metadata, recover
     from starenv.record.rerun import analytics_off, mcap_to_rrd
 
     analytics_off()
     mcap_path = Path(args.recording)
-    rrd = Path(args.rrd) if args.rrd else mcap_path.with_suffix(".rrd")
-    mcap_to_rrd(mcap_path, rrd)
-    meta = read_metadata(mcap_path)
+    partial = mcap_path.name.endswith(".partial")
+    stem = mcap_path.with_name(mcap_path.name.removesuffix(".partial"))
+    rrd = Path(args.rrd) if args.rrd else stem.with_suffix(".rrd")
+    with tempfile.TemporaryDirectory() as tmp:
+        if partial:  # an unfinished recording (a killed run): review what reached the file
+            finished = Path(tmp) / stem.name
+            steps = recover(mcap_path, finished)
+            print(f"{mcap_path} is unfinished: reviewing its {steps} complete steps, up to its last complete chunk "
+                  f"(starenv recover {mcap_path} writes them as a finished MCAP)")
+            mcap_path = finished
+        mcap_to_rrd(mcap_path, rrd)
+        meta = read_metadata(mcap_path)
     run, outcome = meta["starenv.run"], meta.get("starenv.outcome", {})
     print(f"{meta['starenv.scenario']['name']}, seed {run['seed']}: {outcome.get('steps', '?')} steps, "
           f"{outcome.get('status', 'unfinished')}{': ' + outcome['error'] if outcome.get('error') else ''}")
@@ -150,6 +160,20 @@ def cmd_view(args) -> int:
         else:
             subprocess.Popen([viewer, str(rrd)])  # the viewer outlives this command
             print(f"opened the Rerun viewer on {rrd}")
+    return 0
+
+
+def cmd_recover(args) -> int:
+    from starenv.record.mcap import recover
+
+    partial = Path(args.partial)
+    if not partial.name.endswith(".mcap.partial"):
+        raise ValueError(f"recover: expected an unfinished recording FILE.mcap.partial, got {str(partial)!r}")
+    out = Path(args.out) if args.out else partial.with_name(partial.name.removesuffix(".partial"))
+    if out.exists() and not args.out:
+        raise ValueError(f"recover: {out} exists; name another output with --out")
+    steps = recover(partial, out)
+    print(f"wrote {out}: {steps} complete steps recovered from {partial}")
     return 0
 
 
@@ -203,10 +227,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rrd", default=None, metavar="FILE.rrd", help="record the episode to a Rerun .rrd file")
     p.set_defaults(fn=cmd_run)
     p = sub.add_parser("view", help="review an MCAP recording in Rerun (opens the viewer when a display exists)")
-    p.add_argument("recording", help="an MCAP file written by starenv run --record")
+    p.add_argument("recording", help="an MCAP file written by starenv run --record (or the FILE.mcap.partial of a "
+                                     "killed run: its complete steps are reviewed)")
     p.add_argument("--rrd", default=None, metavar="FILE.rrd",
                    help="write the Rerun recording here and do not open the viewer (default: next to the MCAP file)")
     p.set_defaults(fn=cmd_view)
+    p = sub.add_parser("recover", help="turn the .mcap.partial of a killed run into a finished MCAP of its complete "
+                                       "steps")
+    p.add_argument("partial", help="FILE.mcap.partial")
+    p.add_argument("--out", default=None, metavar="FILE.mcap", help="output (default: FILE.mcap, if it does not exist)")
+    p.set_defaults(fn=cmd_recover)
     p = sub.add_parser("bench", help="run a benchmark (scenarios x pipelines x seeds, sweeps) and write a report")
     p.add_argument("bench", help="bench file (.toml) or bundled bench name (e.g. bundled)")
     p.add_argument("--out", required=True, help="output folder (runs/, summary tables, plots/, report.md)")

@@ -3,7 +3,11 @@
 Every key carries its unit in its name (``exposure_s``, ``rate_dps``, ``arw_deg_rthr``).  Loading checks every key:
 an unknown key, a wrong type, a missing field or an out-of-range value raises one :class:`ScenarioError` naming the
 file, the dotted key path and the expected form.  ``overrides`` (dotted key paths, list items by index, e.g.
-``{"motion.rate_dps": [0, 0, 10], "heads.0.width": 256}``) are applied to the file's contents before validation.
+``{"motion.rate_dps": [0, 0, 10], "heads.0.width": 256}``) are applied to the file's contents before validation;
+an override to ``None`` is refused like any other wrong type.  What drives memory and time is bounded at load, with
+the limit in the message (``MAX_TRAIL_PX``, ``MAX_FRAME_PIXELS``, ``MAX_EPISODE_PIXELS``, ``MAX_STAR_INSTANTS``, at
+least two frames), so a run that would not fit fails before it allocates.  A scenario is data: the only code it can
+name is an agent class in ``[pipeline]``, loaded under the rules of ``starenv.agents.pipeline.load_agent``.
 
 Layout (see the bundled files in ``scenarios/`` for complete, commented examples)::
 

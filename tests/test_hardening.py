@@ -5,8 +5,11 @@ field (or recovered)."""
 import gc
 import json
 import math
+import os
 import re
 import resource
+import shutil
+import subprocess
 import sys
 import tomllib
 import warnings
@@ -27,7 +30,7 @@ from starenv.bench.runner import comparable, read_run, run_bench, run_file
 from starenv.bench.spec import BenchError, parse_bench
 from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
-from starenv.record.mcap import McapRecorder, read_partial, read_steps
+from starenv.record.mcap import McapRecorder, read_partial, read_steps, recover
 from starenv.sim import sky
 
 SMALL = {"heads.0.width": 128, "heads.0.height": 128}
@@ -257,6 +260,20 @@ def test_recover_writes_a_finished_mcap_of_the_complete_steps(killed, tmp_path, 
         meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
     assert meta["starenv.outcome"]["status"] == "recovered" and meta["starenv.outcome"]["steps"] == str(len(steps))
     assert f"--steps {len(steps)}" in meta["starenv.outcome"]["reproduce"]
+
+
+@pytest.mark.skipif(shutil.which("rerun") is None, reason="the rerun CLI (rerun-sdk) is not installed")
+def test_rerun_opens_the_recovered_mcap(killed, tmp_path):
+    """Rerun's own MCAP importer checks and converts the recovered file (the unfinished one it refuses)."""
+    _, partial = killed
+    out = tmp_path / "recovered.mcap"
+    recover(partial, out)
+    env = {**os.environ, "CI": "1"}
+    check = subprocess.run(["rerun", "mcap", "check", str(out)], capture_output=True, text=True, timeout=120, env=env)
+    assert check.returncode == 0 and "error" not in check.stdout, check.stdout + check.stderr
+    conv = subprocess.run(["rerun", "mcap", "convert", str(out), "-o", str(tmp_path / "r.rrd")], capture_output=True,
+                          text=True, timeout=120, env=env)
+    assert conv.returncode == 0 and (tmp_path / "r.rrd").stat().st_size > 0, conv.stderr
 
 
 def test_view_reviews_a_partial_recording_saying_so(killed, tmp_path, capsys, monkeypatch):

@@ -153,7 +153,8 @@ class Pipeline:
     ``catalog_mag_limit`` is the onboard catalog's magnitude limit (the sensor's own star catalog, separate from the
     simulator's sky); None picks the limit that puts ~30 stars in the narrowest head's field (at most Hp 7.5): deep
     enough for tracking, while the lost-in-space database takes its own brighter cut.  ``options`` maps a role to
-    constructor options for agents given as class or string.
+    constructor options for agents given as class or string; ``trust``: module prefixes outside ``starenv`` that
+    ``"module:Class"`` strings may load agents from (see :func:`load_agent`).
     """
 
     def __init__(self, catalog_mag_limit: float | None = None, options: dict[str, dict] | None = None, *,

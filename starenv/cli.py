@@ -45,6 +45,9 @@ def cmd_render(args) -> int:
     from starenv.view import mosaic, overlay
 
     sc = scenario_mod.load(args.scenario, _overrides(args.set))
+    if not 0 <= args.frame < sc.n_steps:
+        raise ValueError(f"--frame: expected a frame index in [0, {sc.n_steps - 1}] (the scenario's frames), "
+                         f"got {args.frame}")
     sensor = StarSensor(sc)
     sensor.reset(sc.seed if args.seed is None else args.seed)
     for _ in range(args.frame + 1):

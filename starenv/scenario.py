@@ -167,6 +167,7 @@ def _calibration(tbl: Table | None, camera: Camera) -> Camera:
     return tbl.build("calibration", dataclasses.replace, camera, **changes)
 
 
+MAX_INERTIA_KGM2 = 1e12  # far above any spacecraft; keeps Euler's equations in floating-point range
 MOTION_KINDS = ("constant_rate", "slew", "tumble", "coning", "leo_nadir", "sequence")
 
 
@@ -198,8 +199,9 @@ def _motion_kind(tbl: Table, kind: str, head0: Camera, initial: Rotation | None)
         rows = inertia if isinstance(inertia, list) and all(isinstance(r, list) for r in inertia) else [inertia]
         ok = all(isinstance(r, list) and r and all(is_number(x) for x in r) for r in rows)
         arr = np.array(inertia, dtype=np.float64) if ok and len({len(r) for r in rows}) == 1 else None
-        if arr is None or arr.shape not in ((3,), (3, 3)):
-            tbl.fail("inertia_kgm2", "3 principal moments or a 3x3 tensor, kg m^2", inertia)
+        if arr is None or arr.shape not in ((3,), (3, 3)) or not np.all(np.abs(arr) <= MAX_INERTIA_KGM2):
+            tbl.fail("inertia_kgm2", f"3 principal moments or a 3x3 tensor, kg m^2, each |value| <= "
+                                     f"{MAX_INERTIA_KGM2:g}", inertia)
         tensor = np.diag(arr) if arr.shape == (3,) else arr
         rate = np.array(tbl.vector("rate_dps", 3)) * DEG
         return tbl.build("motion", TorqueFree, tensor, rate)

@@ -11,6 +11,7 @@ import resource
 import shutil
 import subprocess
 import sys
+import tempfile
 import tomllib
 import warnings
 from pathlib import Path
@@ -179,6 +180,7 @@ def _scenario(**overrides):
         ({"duration_s": 1e7}, "duration_s: expected frames x pixels per frame <= 1e+12"),
         ({"mag_limit": 12.0, "motion.rate_dps": [1500, 0, 0]}, "stars in view x render instants <= 8388608"),
         ({"duration_s": 0.015}, "duration_s: expected at least two frame periods (>= 0.02 s"),
+        ({"motion.kind": "tumble", "motion.inertia_kgm2": [1e308, 1e308, 1e308]}, "each |value| <= 1e+12, got"),
     ],
 )
 def test_scenario_bounds_on_memory_and_time_name_their_limit(overrides, message):
@@ -216,6 +218,11 @@ def test_none_is_refused_for_every_key(key):
 def test_wrong_types_are_refused_with_expected_and_got(key, value):
     with pytest.raises(scenario_mod.ScenarioError, match=rf"{key.replace('.', '[.]')}: expected .*, got "):
         _scenario(**{key: value})
+
+
+def test_render_refuses_a_frame_outside_the_scenario(capsys):
+    assert cli.main(["render", "paper_000", "--frame", "1500"]) == 2  # 15 s at 100 Hz: frames 0 .. 1499
+    assert "--frame: expected a frame index in [0, 1499]" in capsys.readouterr().err
 
 
 # --- crashes lose nothing ------------------------------------------------------------------------------------------
@@ -419,14 +426,38 @@ values = st.recursive(scalars, lambda inner: st.one_of(st.lists(inner, max_size=
 OK_ERRORS = (ValueError,)  # ScenarioError, BenchError and the env's errors are ValueErrors
 
 
+PAPER_000 = tomllib.loads(scenario_mod.resolve("paper_000").read_text())
+REMOVABLE = ["duration_s", "exposure_s", "motion", "motion.kind", "motion.rate_dps", "heads", "heads.0.width",
+             "heads.0.distortion.kind", "gyro", "name"]
+
+
+def _without(data: dict, dotted: str) -> dict:
+    node = data
+    *parents, last = dotted.split(".")
+    for part in parents:
+        node = node[int(part)] if isinstance(node, list) else node.get(part, {})
+    if isinstance(node, dict):
+        node.pop(last, None)
+    return data
+
+
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(overrides=st.dictionaries(st.sampled_from(SCENARIO_KEYS), values, max_size=3))
-def test_fuzz_scenario_overrides(overrides):
-    try:
-        sc = scenario_mod.load("paper_000", overrides)
-    except OK_ERRORS:
-        return
+@given(removed=st.lists(st.sampled_from(REMOVABLE), max_size=2),
+       overrides=st.dictionaries(st.sampled_from(SCENARIO_KEYS), values, max_size=3))
+def test_fuzz_scenario_files(removed, overrides):
+    """A scenario file (paper_000 written back as TOML, keys removed) loaded with overrides of any type."""
+    data = json.loads(json.dumps(PAPER_000))
+    for key in removed:
+        _without(data, key)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "fuzz.toml"
+        path.write_text(scenario_mod.dump_toml(data))
+        try:
+            sc = scenario_mod.load(path, overrides)
+        except OK_ERRORS:
+            return
     assert sum(h.camera.width * h.camera.height for h in sc.heads) <= scenario_mod.MAX_FRAME_PIXELS
+    assert sc.n_steps >= 2
 
 
 ACTION_KEYS = ["attitude", "attitude_valid", "detections_xy", "detection_mask", "catalog_ids", "predicted_xy",

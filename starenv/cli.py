@@ -133,12 +133,12 @@ def cmd_view(args) -> int:
     import subprocess
     import tempfile
 
-    from starenv.record.mcap import read_metadata, recover
+    from starenv.record.mcap import is_finished, read_metadata, recover
     from starenv.record.rerun import analytics_off, mcap_to_rrd
 
     analytics_off()
     mcap_path = Path(args.recording)
-    partial = mcap_path.name.endswith(".partial")
+    partial = mcap_path.name.endswith(".partial") or not is_finished(mcap_path)
     stem = mcap_path.with_name(mcap_path.name.removesuffix(".partial"))
     rrd = Path(args.rrd) if args.rrd else stem.with_suffix(".rrd")
     with tempfile.TemporaryDirectory() as tmp:
@@ -170,7 +170,7 @@ def cmd_recover(args) -> int:
     from starenv.record.mcap import recover
 
     partial = Path(args.partial)
-    if not partial.name.endswith(".mcap.partial"):
+    if not partial.name.endswith(".partial"):
         raise ValueError(f"recover: expected an unfinished recording FILE.mcap.partial, got {str(partial)!r}")
     out = Path(args.out) if args.out else partial.with_name(partial.name.removesuffix(".partial"))
     if out.exists() and not args.out:

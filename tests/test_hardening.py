@@ -290,6 +290,12 @@ def test_view_reviews_a_partial_recording_saying_so(killed, tmp_path, capsys, mo
     assert cli.main(["view", str(partial), "--rrd", str(rrd)]) == 0
     out = capsys.readouterr().out
     assert "is unfinished: reviewing its" in out and "recovered" in out and rrd.stat().st_size > 0
+    cut = tmp_path / "renamed.mcap"  # an unfinished file under a finished name is detected too (no closing magic)
+    cut.write_bytes(partial.read_bytes())
+    assert cli.main(["view", str(cut), "--rrd", str(tmp_path / "cut.rrd")]) == 0
+    assert "is unfinished: reviewing its" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="unfinished .* 'starenv recover'"):
+        list(read_steps(cut))
     assert cli.main(["recover", str(partial)]) == 0  # default output: the name without .partial
     assert (partial.parent / "killed.mcap").is_file()
     assert cli.main(["recover", str(partial)]) == 2  # never overwrites

@@ -271,9 +271,25 @@ def check_mcap(path: str | os.PathLike) -> Path:
     return p
 
 
+def is_finished(path: str | os.PathLike) -> bool:
+    """Whether the MCAP file ``path`` was finished (it ends with the closing magic after its footer)."""
+    p = check_mcap(path)
+    with open(p, "rb") as f:
+        f.seek(max(0, p.stat().st_size - len(MAGIC)))
+        return p.stat().st_size >= 2 * len(MAGIC) and f.read() == MAGIC
+
+
+def check_finished(path: str | os.PathLike) -> Path:
+    """``path`` if it is a finished MCAP file, else ``ValueError`` saying how to read what it holds."""
+    if not is_finished(path):
+        raise ValueError(f"recording {str(path)!r}: unfinished (the run that wrote it stopped before closing it): "
+                         f"review it with 'starenv view', or make it whole with 'starenv recover'")
+    return Path(path)
+
+
 def read_metadata(path: str | os.PathLike) -> dict[str, dict[str, str]]:
     """The metadata records of a finished recording: name -> key/value strings."""
-    with open(check_mcap(path), "rb") as f:
+    with open(check_finished(path), "rb") as f:
         return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
 
 
@@ -316,7 +332,7 @@ def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int, next_fr
 def read_steps(path: str | os.PathLike) -> Iterator[StepData]:
     """The steps of a finished recording, in time order (messages without scores, e.g. the error that stopped a run,
     come back as a step of their own, numbered after the last scored one)."""
-    path = check_mcap(path)
+    path = check_finished(path)
     n_heads = int(read_metadata(path)["starenv.run"]["heads"])
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])

@@ -7,12 +7,12 @@ import json
 import math
 import os
 import re
-import resource
 import shutil
 import subprocess
 import sys
 import tempfile
 import tomllib
+import tracemalloc
 import warnings
 from pathlib import Path
 
@@ -140,10 +140,20 @@ def test_cli_and_bench_trust_switches(probe, tmp_path, capsys):
 # --- results cannot be silently wrong ------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("edit", ["value", "empty object", "not json", "line removed"])
-def test_an_edited_run_file_is_recomputed_and_listed(tmp_path, edit):
+@pytest.fixture(scope="module")
+def bench_out(tmp_path_factory):
+    """A bench run once: its parsed bench and output folder (tests copy the folder)."""
+    out = tmp_path_factory.mktemp("bench")
     bench = parse_bench(BENCH)
-    files = run_bench(bench, tmp_path, jobs=1, progress=False, log=lambda *_: None)
+    run_bench(bench, out, jobs=1, progress=False, log=lambda *_: None)
+    return bench, out
+
+
+@pytest.mark.parametrize("edit", ["value", "empty object", "not json", "line removed"])
+def test_an_edited_run_file_is_recomputed_and_listed(bench_out, tmp_path, edit):
+    bench, first = bench_out
+    shutil.copytree(first, tmp_path, dirs_exist_ok=True)
+    files = [run_file(tmp_path, r) for r in bench.runs]
     original = read_run(files[0])[1]
     lines = files[0].read_text().splitlines()
     if edit == "value":
@@ -432,6 +442,21 @@ values = st.recursive(scalars, lambda inner: st.one_of(st.lists(inner, max_size=
 OK_ERRORS = (ValueError,)  # ScenarioError, BenchError and the env's errors are ValueErrors
 
 
+@pytest.fixture(autouse=True)
+def under_2_gb(request):
+    """Fuzz tests: the peak of Python and numpy allocations (tracemalloc) during the test stays under 2 GiB."""
+    if not request.node.name.startswith("test_fuzz_"):
+        yield
+        return
+    tracemalloc.start()
+    try:
+        yield
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2 * 1024**3, f"{peak / 2**30:.2f} GiB"
+
+
 PAPER_000 = tomllib.loads(scenario_mod.resolve("paper_000").read_text())
 REMOVABLE = ["duration_s", "exposure_s", "motion", "motion.kind", "motion.rate_dps", "heads", "heads.0.width",
              "heads.0.distortion.kind", "gyro", "name"]
@@ -504,7 +529,3 @@ def test_fuzz_bench_files(lines):
         pass
 
 
-def test_fuzzing_stayed_under_2_gb():
-    """Runs after the fuzz tests in this module: the process's peak resident memory (Linux: KiB)."""
-    peak_bytes = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    assert peak_bytes < 2 * 1024**3

@@ -123,6 +123,14 @@ def test_a_class_is_checked_against_its_protocol_before_construction(probe):
             load_agent(spec, "solver")
 
 
+def test_agent_options_that_do_not_fit_the_class_are_a_clear_error(capsys):
+    sc = scenario_mod.load("paper_000", {"pipeline.options.solver.bogus": 1})
+    with pytest.raises(ValueError, match=r"solver: options \['bogus'\] do not fit QuestSolver"):
+        Pipeline.for_scenario(sc)
+    assert cli.main(["run", "paper_000", "--steps", "1", "--set", "pipeline.options.solver.bogus=1"]) == 2
+    assert "do not fit QuestSolver" in capsys.readouterr().err
+
+
 def test_cli_and_bench_trust_switches(probe, tmp_path, capsys):
     assert cli.main(["run", "paper_000", "--set", "heads.0.width=128", "--set", "heads.0.height=128", "--steps", "2",
                      "--agent", "solver=hardening_probe:Solver", "--trust", "hardening_probe"]) == 0

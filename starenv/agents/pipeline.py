@@ -136,7 +136,16 @@ def load_agent(spec: Any, role: str, *, trust: tuple[str, ...] = (), **kwargs) -
                              "trusted (name the class where it is defined)")
     if isinstance(spec, type):
         check_agent_class(spec, role)
-        agent = spec(**kwargs)
+        try:
+            inspect.signature(spec).bind(**kwargs)
+        except TypeError as exc:
+            raise ValueError(f"{role}: options {sorted(kwargs)} do not fit {spec.__name__} ({exc})") from exc
+        except ValueError:  # no signature to check (a builtin): the constructor checks
+            pass
+        try:
+            agent = spec(**kwargs)
+        except TypeError as exc:  # an option of the wrong type
+            raise ValueError(f"{role}: {spec.__name__} refused its options {kwargs} ({exc})") from exc
     elif kwargs:
         raise ValueError(f"{role}: options {sorted(kwargs)} can only be given with a class or 'module:Class'")
     else:

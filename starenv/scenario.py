@@ -5,9 +5,10 @@ an unknown key, a wrong type, a missing field or an out-of-range value raises on
 file, the dotted key path and the expected form.  ``overrides`` (dotted key paths, list items by index, e.g.
 ``{"motion.rate_dps": [0, 0, 10], "heads.0.width": 256}``) are applied to the file's contents before validation;
 an override to ``None`` is refused like any other wrong type.  What drives memory and time is bounded at load, with
-the limit in the message (``MAX_TRAIL_PX``, ``MAX_FRAME_PIXELS``, ``MAX_EPISODE_PIXELS``, ``MAX_STAR_INSTANTS``, at
-least two frames), so a run that would not fit fails before it allocates.  A scenario is data: the only code it can
-name is an agent class in ``[pipeline]``, loaded under the rules of ``starenv.agents.pipeline.load_agent``.
+the limit in the message (``MAX_TRAIL_PX``, ``MAX_FRAME_PIXELS``, ``MAX_EPISODE_PIXELS``, ``MAX_STAR_INSTANTS``,
+``MAX_GYRO_PER_STEP``, at least two frames), so a run that would not fit fails before it allocates.  A scenario is
+data: the only code it can name is an agent class in ``[pipeline]``, loaded under the rules of
+``starenv.agents.pipeline.load_agent``.
 
 Layout (see the bundled files in ``scenarios/`` for complete, commented examples)::
 
@@ -77,6 +78,7 @@ MAX_TRAIL_PX = 1024.0  # longest star trail in one exposure (render time and mem
 MAX_FRAME_PIXELS = 2**25  # pixels of one step's frames, all heads (~12 bytes each while a frame is made)
 MAX_EPISODE_PIXELS = 10**12  # frames x pixels per frame over an episode (render time)
 MAX_STAR_INSTANTS = 2**23  # stars that may cross a frame x exposure instants (the renderer's path arrays)
+MAX_GYRO_PER_STEP = 2**18  # gyro samples one observation holds (the env's fixed gyro layout, 32 bytes each)
 # Hipparcos-2 stars with Hp <= m for m = -2 .. 14 (counted from the bundled catalogue), to bound stars in view.
 HIP_COUNT_AT_MAG = (0, 1, 2, 15, 46, 165, 480, 1471, 4559, 13943, 37622, 78352, 106261, 114825, 117325, 117915,
                     117953)
@@ -301,8 +303,13 @@ def parse_pipeline(tbl: Table | None) -> PipelineSpec:
 
 
 def _check_bounds(source: str, duration: float, frame_rate: float, exposure: float, mag_limit: float,
-                  heads: list[HeadSpec], trajectory: Trajectory) -> None:
+                  heads: list[HeadSpec], trajectory: Trajectory, gyro: GyroSpec) -> None:
     """Refuse a scenario whose frames, trails or episode would need more memory or time than the bounds allow."""
+    per_step = math.ceil(gyro.rate_hz / frame_rate) + 1
+    if per_step > MAX_GYRO_PER_STEP:
+        raise ScenarioError(f"{source}: frame_rate_hz: expected at most {MAX_GYRO_PER_STEP} gyro samples per frame "
+                            f"(frame_rate_hz >= {gyro.rate_hz / (MAX_GYRO_PER_STEP - 2):.3g} at gyro.rate_hz = "
+                            f"{gyro.rate_hz:g}), got {per_step}")
     pixels = sum(h.camera.width * h.camera.height for h in heads)
     if pixels > MAX_FRAME_PIXELS:
         raise ScenarioError(f"{source}: heads: expected at most {MAX_FRAME_PIXELS} pixels per step over all heads "
@@ -436,7 +443,7 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
     drops = dataclass_from_table(top.table("drops"), DropModel)
     pipeline = parse_pipeline(top.table("pipeline"))
     top.finish()
-    _check_bounds(source, duration, frame_rate, exposure, mag_limit, heads, trajectory)
+    _check_bounds(source, duration, frame_rate, exposure, mag_limit, heads, trajectory, gyro)
     return Scenario(
         name, description, seed, duration, frame_rate, exposure, mag_limit, epoch, sky, lost_after, avail,
         trajectory, gyro, drops, heads, pipeline, source, data,

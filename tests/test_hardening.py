@@ -198,6 +198,9 @@ def _scenario(**overrides):
         ({"duration_s": 1e7}, "duration_s: expected frames x pixels per frame <= 1e+12"),
         ({"mag_limit": 12.0, "motion.rate_dps": [1500, 0, 0]}, "stars in view x render instants <= 8388608"),
         ({"duration_s": 0.015}, "duration_s: expected at least two frame periods (>= 0.02 s"),
+        # 500 Hz gyro / 0.001 Hz frames: 500001 samples per observation
+        ({"frame_rate_hz": 0.001, "duration_s": 1e4}, "expected at most 262144 gyro samples per frame (frame_rate_hz"
+                                                      " >= 0.00191 at gyro.rate_hz = 500), got 500001"),
         ({"motion.kind": "tumble", "motion.inertia_kgm2": [1e308, 1e308, 1e308]}, "each |value| <= 1e+12, got"),
     ],
 )

@@ -157,7 +157,7 @@ def bench_out(tmp_path_factory):
     return bench, out
 
 
-@pytest.mark.parametrize("edit", ["value", "empty object", "not json", "line removed"])
+@pytest.mark.parametrize("edit", ["value", "empty object", "not json", "line removed", "header identity"])
 def test_an_edited_run_file_is_recomputed_and_listed(bench_out, tmp_path, edit):
     bench, first = bench_out
     shutil.copytree(first, tmp_path, dirs_exist_ok=True)
@@ -170,12 +170,16 @@ def test_an_edited_run_file_is_recomputed_and_listed(bench_out, tmp_path, edit):
         lines[2] = json.dumps(step, sort_keys=True)
     elif edit == "empty object":
         lines[2] = "{}"
+    elif edit == "header identity":
+        header = json.loads(lines[0])
+        header["identity"]["seed"] = 99
+        lines[0] = json.dumps(header, sort_keys=True)
     elif edit == "not json":
         lines[2] = lines[2][:-5]
     else:
         del lines[2]
     files[0].write_text("\n".join(lines) + "\n")
-    with pytest.raises(ValueError, match="not a complete run file|checksum"):
+    with pytest.raises(ValueError, match="not a complete run file|checksum|identity does not match"):
         read_run(files[0])
     log = []
     run_bench(bench, tmp_path, jobs=1, progress=False, log=log.append)

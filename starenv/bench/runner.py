@@ -7,7 +7,8 @@ steps): the same run gives bit-identical score records whichever executor ran it
 Results: ``OUT/runs/<run_id>.jsonl``, one JSON object per line: a header ``{"identity": ..., "digest": ...,
 "run_id": ...}``, one line per step (the flat record of ``starenv.scoring.flatten``, with ``step``),
 and a footer ``{"complete": true, "steps": n, "digest": ..., "steps_sha256": ..., "dropped": [...], "lost_at": ...,
-"wall_s": ...}``; ``steps_sha256`` is the SHA-256 of the step lines (UTF-8, each line with its ``\n``).  The file is
+"wall_s": ...}``; ``steps_sha256`` is the SHA-256 of the step lines (UTF-8, each line with its ``\n``) and the
+header's ``digest`` the SHA-256 of its identity (compact JSON, sorted keys).  The file is
 written whole under a temporary name, then moved into place (``os.replace``), so a killed runner leaves either a
 complete file or none; on restart a run whose file is complete, carries the same digest and whose step lines match
 their checksum is reused; any other existing file (edited, truncated, malformed) is run again and listed.
@@ -98,6 +99,9 @@ def read_run(path: Path) -> tuple[dict, list[dict], dict]:
     body = lines[1:-1]
     if not footer.get("complete") or footer.get("steps") != len(body) or footer.get("digest") != header.get("digest"):
         raise ValueError(f"{path}: not a complete run file (no matching footer)")
+    identity = json.dumps(header.get("identity"), sort_keys=True, separators=(",", ":"))
+    if hashlib.sha256(identity.encode()).hexdigest() != header.get("digest"):
+        raise ValueError(f"{path}: its header's identity does not match its digest (edited or damaged)")
     if footer.get("steps_sha256") != steps_sha256(body):
         raise ValueError(f"{path}: its step lines do not match their checksum (edited or damaged)")
     steps = []

@@ -213,6 +213,18 @@ def test_scenario_bounds_on_memory_and_time_name_their_limit(overrides, message)
         _scenario(**overrides)
 
 
+def test_a_run_that_would_not_fit_fails_before_it_allocates():
+    """The issue's case: 1e4 deg/s on a 256 px frame once asked for 9.3 GiB; now the env refuses it at load."""
+    tracemalloc.start()
+    try:
+        with pytest.raises(scenario_mod.ScenarioError, match="star trails of at most 1024 px"):
+            StarSensorEnv("paper_000", {"motion.rate_dps": [1e4, 0, 0], "heads.0.width": 256, "heads.0.height": 256})
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 * 2**20
+
+
 def test_trail_bound_is_the_renderers_own_image_speed_bound():
     """A rate just under the bound loads; the renderer's instant count for it is the bound's / max_step_px."""
     sc = _scenario()

@@ -1,5 +1,6 @@
 """Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``,
-``starenv bench BENCH``, ``starenv view FILE``, ``starenv export FILE``."""
+``starenv bench BENCH``, ``starenv view FILE``, ``starenv export FILE``,
+``starenv recover FILE.mcap.partial``."""
 
 from __future__ import annotations
 
@@ -12,6 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from starenv import scenario as scenario_mod
+
+TRUST_HELP = ("let agents ('module:Class' in the scenario, bench file or --agent) load from this module prefix outside "
+              "starenv: its code will run (repeatable)")
 
 
 def _overrides(pairs: list[str]) -> dict:
@@ -139,7 +143,7 @@ def cmd_run(args) -> int:
     if args.pipeline != "none":
         from starenv.agents.pipeline import Pipeline
 
-        pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent))
+        pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent), trust=tuple(args.trust))
     sc = env.scenario
     observers = []
     if args.record:
@@ -187,17 +191,27 @@ def cmd_view(args) -> int:
     import os
     import shutil
     import subprocess
+    import tempfile
 
-    from starenv.record.mcap import read_metadata
+    from starenv.record.mcap import is_finished, read_metadata, recover
     from starenv.record.rerun import analytics_off, mcap_to_rrd
 
     analytics_off()
     mcap_path = Path(args.recording)
-    rrd = Path(args.rrd) if args.rrd else mcap_path.with_suffix(".rrd")
-    meta = read_metadata(mcap_path)
-    total = meta.get("starenv.outcome", {}).get("steps")
-    with _progress(int(total) if total else None, "building the review", args.quiet) as bar:
-        mcap_to_rrd(mcap_path, rrd, on_step=bar.update)
+    partial = mcap_path.name.endswith(".partial") or not is_finished(mcap_path)
+    stem = mcap_path.with_name(mcap_path.name.removesuffix(".partial"))
+    rrd = Path(args.rrd) if args.rrd else stem.with_suffix(".rrd")
+    with tempfile.TemporaryDirectory() as tmp:
+        if partial:  # an unfinished recording (a killed run): review what reached the file
+            finished = Path(tmp) / stem.name
+            steps = recover(mcap_path, finished)
+            print(f"{mcap_path} is unfinished: reviewing its {steps} complete steps, up to its last complete chunk "
+                  f"(starenv recover {mcap_path} writes them as a finished MCAP)")
+            mcap_path = finished
+        meta = read_metadata(mcap_path)
+        total = meta.get("starenv.outcome", {}).get("steps")
+        with _progress(int(total) if total else None, "building the review", args.quiet) as bar:
+            mcap_to_rrd(mcap_path, rrd, on_step=bar.update)
     run, outcome = meta["starenv.run"], meta.get("starenv.outcome", {})
     print(f"{meta['starenv.scenario']['name']}, seed {run['seed']}: {outcome.get('steps', '?')} steps, "
           f"{outcome.get('status', 'unfinished')}{': ' + outcome['error'] if outcome.get('error') else ''}")
@@ -232,6 +246,20 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_recover(args) -> int:
+    from starenv.record.mcap import recover
+
+    partial = Path(args.partial)
+    if not partial.name.endswith(".partial"):
+        raise ValueError(f"recover: expected an unfinished recording FILE.mcap.partial, got {str(partial)!r}")
+    out = Path(args.out) if args.out else partial.with_name(partial.name.removesuffix(".partial"))
+    if out.exists() and not args.out:
+        raise ValueError(f"recover: {out} exists; name another output with --out")
+    steps = recover(partial, out)
+    print(f"wrote {out}: {steps} complete steps recovered from {partial}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     import importlib.util
 
@@ -242,7 +270,7 @@ def cmd_bench(args) -> int:
     for module in ("tqdm", "matplotlib"):
         if importlib.util.find_spec(module) is None:  # fail before the runs, not at the report after them
             raise ValueError(f"starenv bench needs {module} (the 'report' extra: pip install 'starenv[report]')")
-    bench = load_bench(args.bench)
+    bench = load_bench(args.bench, trust=tuple(args.trust))
     check_writable(Path(args.out))
     if args.jobs is not None and args.jobs < 1:
         raise ValueError(f"--jobs: expected an integer >= 1, got {args.jobs}")
@@ -283,6 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--agent", action="append", default=[], metavar="ROLE=module:Class",
                    help="replace one agent of the pipeline (roles: predictor, deblurrer, detector, corrector, "
                         "identifier, solver; ROLE=none empties an optional role)")
+    p.add_argument("--trust", action="append", default=[], metavar="MODULE_PREFIX", help=TRUST_HELP)
     p.add_argument("--record", default=None, metavar="FILE.mcap",
                    help="record the episode to an MCAP file (Foxglove schemas; open with Foxglove or starenv view)")
     p.add_argument("--rrd", default=None, metavar="FILE.rrd", help="record the episode to a Rerun .rrd file")
@@ -294,11 +323,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="where to write the scenario (default scenario.toml, the name the reproduce command uses)")
     p.set_defaults(fn=cmd_export)
     p = sub.add_parser("view", help="review an MCAP recording in Rerun (opens the viewer when a display exists)")
-    p.add_argument("recording", help="an MCAP file written by starenv run --record")
+    p.add_argument("recording", help="an MCAP file written by starenv run --record (or the FILE.mcap.partial of a "
+                                     "killed run: its complete steps are reviewed)")
     p.add_argument("--rrd", default=None, metavar="FILE.rrd",
                    help="write the Rerun recording here and do not open the viewer (default: next to the MCAP file)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_view)
+    p = sub.add_parser("recover", help="turn the .mcap.partial of a killed run into a finished MCAP of its complete "
+                                       "steps")
+    p.add_argument("partial", help="FILE.mcap.partial")
+    p.add_argument("--out", default=None, metavar="FILE.mcap", help="output (default: FILE.mcap, if it does not exist)")
+    p.set_defaults(fn=cmd_recover)
     p = sub.add_parser("bench", help="run a benchmark (scenarios x pipelines x seeds, sweeps) and write a report")
     p.add_argument("bench", help="bench file (.toml) or bundled bench name (e.g. bundled)")
     p.add_argument("--out", required=True, help="output folder (runs/, summary tables, plots/, report.md)")
@@ -306,6 +341,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--trust", action="append", default=[], metavar="MODULE_PREFIX", help=TRUST_HELP)
     p.set_defaults(fn=cmd_bench)
     args = parser.parse_args(argv)
     try:

@@ -28,7 +28,10 @@ detection's direction); ``predicted_xy``
 Reward: ``max(0, 1 - error / threshold)`` for an available estimate (1 when exact, 0 at or beyond the scenario's
 ``availability_threshold_arcsec``), 0 when unavailable.  ``terminated`` once ``lost_after_steps`` consecutive steps
 had no available estimate within the threshold ("lost"); ``truncated`` after the scenario's last frame (the bundled
-ids register the same count as ``max_episode_steps``: ``n_steps - 1`` steps).
+ids register the same count as ``max_episode_steps``: ``n_steps - 1`` steps).  A lost episode may still be stepped
+(benchmarks score whole episodes); stepping after ``truncated`` raises ``gymnasium.error.ResetNeeded``: there is no
+next frame.  ``reset(seed=...)`` takes a Python or numpy integer in [0, 2**63); ``reset`` takes no options
+(``options`` must be None or empty: anything else raises ``ValueError`` rather than being ignored).
 
 Bounds.  Every box is finite so that ``observation_space.sample()`` works: times lie in ``[0, T]`` with ``T`` the
 episode's last mid-exposure time plus one frame period (``time_horizon_s``; an env stepped past truncation leaves
@@ -61,6 +64,7 @@ while the vector env merges the infos (``scores["attitude"]`` is a dict in one a
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -89,6 +93,9 @@ class StarSensorEnv(gym.Env):
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        if not isinstance(scenario, str | os.PathLike | dict):
+            raise ValueError("scenario: expected a bundled scenario name, a .toml path or a parsed scenario dict, "
+                             f"got {type(scenario).__name__} {scenario!r}")
         self.scenario = scenario_mod.load(scenario, overrides)
         self.render_mode = render_mode
         self.sensor = StarSensor(self.scenario)
@@ -157,8 +164,15 @@ class StarSensorEnv(gym.Env):
         """Start an episode: returns ``(observation of frame 0, {"truth": ...})``.
 
         ``seed`` (int) reseeds every noise source (the first reset without one uses the scenario's ``seed``);
-        ``options`` is accepted for the Gymnasium signature and ignored.
+        ``options`` must be None or empty (``ValueError`` otherwise).
         """
+        if options is not None and (not isinstance(options, dict) or options):
+            raise ValueError(f"reset options: StarSensorEnv takes none (expected None or {{}}), got {options!r}; "
+                             "change the scenario with overrides instead")
+        if seed is not None:
+            if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= int(seed) < 2**63:
+                raise ValueError(f"seed: expected None or an integer in [0, 2**63), got {seed!r}")
+            seed = int(seed)
         if seed is None and self._np_random is None:
             seed = self.scenario.seed
         super().reset(seed=seed)
@@ -176,6 +190,9 @@ class StarSensorEnv(gym.Env):
         """
         if self._frame is None:
             raise RuntimeError("call reset() before step()")
+        if self._steps >= self.scenario.n_steps - 1:
+            raise gym.error.ResetNeeded(f"the episode ended (truncated) after its last frame, step {self._steps}: "
+                                        "call reset() before step()")
         parsed = parse_action(action, len(self.scenario.heads))
         scores = self._score(parsed, self._frame)
         threshold = self.scenario.availability_threshold_arcsec
@@ -260,7 +277,10 @@ class StarSensorEnv(gym.Env):
 
 def _array(action: dict, key: str, shape: tuple, kind: str) -> np.ndarray:
     value = action[key]
-    arr = np.asarray(value)
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise ValueError(f"action[{key!r}] must be an array of shape {shape}, got {value!r:.80} ({exc})") from exc
     if kind == "f" and arr.dtype.kind not in "fiu" or kind == "i" and arr.dtype.kind not in "iu":
         expected = "real numbers" if kind == "f" else "integers"
         raise ValueError(f"action[{key!r}] must hold {expected}, got dtype {arr.dtype}")
@@ -280,6 +300,9 @@ def parse_action(action, n_heads: int) -> dict:
         return out
     if not isinstance(action, dict):
         raise ValueError(f"action must be a dict (see StarSensorEnv.action_space) or None, got {type(action).__name__}")
+    bad_keys = [k for k in action if not isinstance(k, str)]
+    if bad_keys:
+        raise ValueError(f"action keys must be strings, got {bad_keys[0]!r}")
     unknown = set(action) - {"attitude", "attitude_valid", "detection_mask", "prediction_mask", *keys}
     if unknown:
         raise ValueError(f"action has unknown keys {sorted(unknown)}")
@@ -291,8 +314,10 @@ def parse_action(action, n_heads: int) -> dict:
         valid = bool(flag)
     if "attitude" in action:
         q = _array(action, "attitude", (4,), "f")
+        scale = float(np.max(np.abs(q)))
+        q = q / scale if scale > 0 else q  # so the norm cannot overflow (a quaternion's scale carries no meaning)
         norm = float(np.linalg.norm(q))
-        if valid and norm < 1e-6:
+        if valid and scale < 1e-6:
             raise ValueError("action['attitude'] must be a quaternion [x, y, z, w] of non-zero norm (it is normalised)")
         out["attitude"] = q / norm if valid else None
     for list_key, mask_key, xy_key, id_key in (

@@ -11,13 +11,16 @@ solved attitude the corrector learns from the identified stars.  The action repo
 measured (the predictor's positions in the calibrated camera mapped back through the corrector).
 
 Agents are given as instances, classes or ``"module:Class"`` strings (a path an agent had before it moved is
-refused with its new one).  ``Pipeline`` is a :class:`~starenv.agents.base.Policy`: after each call ``report`` holds
-the step's wall time per role (s), where the attitude came from and, with a deblurrer, each head's restoration.
+refused with its new one).  A string is data: only a class under ``starenv`` (or under a module prefix the caller
+trusts, ``trust=``) that implements its role's protocol is imported and constructed, see :func:`load_agent`.
+``Pipeline`` is a :class:`~starenv.agents.base.Policy`: after each call ``report`` holds the step's wall time per
+role (s), where the attitude came from and, with a deblurrer, each head's restoration.
 """
 
 from __future__ import annotations
 
 import importlib
+import inspect
 import time
 from typing import Any
 
@@ -59,10 +62,60 @@ MOVED = {  # agents' former "module:Class" paths -> where they live now
 }
 
 
-def load_agent(spec: Any, role: str, **kwargs) -> Any:
-    """An agent for ``role`` from an instance, a class or a ``"module:Class"`` string (kwargs go to the class)."""
+TRUSTED = ("starenv",)  # module prefixes agents may be loaded from without an explicit trust
+
+
+def _trusted(module: str, trust: tuple[str, ...]) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in (*TRUSTED, *trust))
+
+
+def check_trust(trust: Any) -> tuple[str, ...]:
+    """``trust`` as a tuple of module prefixes (``"mypkg"`` trusts ``mypkg`` and ``mypkg.*``), or ValueError."""
+    if isinstance(trust, str):
+        trust = (trust,)
+    ok = isinstance(trust, list | tuple) and all(
+        isinstance(p, str) and p and all(part.isidentifier() for part in p.split(".")) for p in trust)
+    if not ok:
+        raise ValueError(f"trust: expected module prefixes like 'mypkg' or 'mypkg.agents', got {trust!r}")
+    return tuple(trust)
+
+
+def _protocol_methods(protocol: type) -> dict[str, int]:
+    """Public method name -> number of positional parameters after ``self`` that the pipeline passes."""
+    out = {}
+    for name, fn in vars(protocol).items():
+        if callable(fn) and not name.startswith("_"):
+            out[name] = len(inspect.signature(fn).parameters) - 1
+    return out
+
+
+def check_agent_class(cls: type, role: str) -> None:
+    """Refuse a class that does not implement ``role``'s protocol (methods present and callable with the arguments
+    the pipeline passes), without constructing it."""
+    protocol = ROLE_PROTOCOLS[role]
+    for name, n_args in _protocol_methods(protocol).items():
+        method = inspect.getattr_static(cls, name, None)
+        if method is None or not callable(getattr(cls, name, None)):
+            raise ValueError(f"{role}: {cls.__name__} does not implement the {protocol.__name__} protocol "
+                             f"(no method {name})")
+        try:
+            inspect.signature(getattr(cls, name)).bind(*[None] * (n_args + 1))
+        except TypeError as exc:
+            raise ValueError(f"{role}: {cls.__name__}.{name} cannot take the {n_args} arguments of "
+                             f"{protocol.__name__}.{name} ({exc})") from exc
+        except ValueError:  # no signature (a builtin): nothing more to check
+            pass
+
+
+def load_agent(spec: Any, role: str, *, trust: tuple[str, ...] = (), **kwargs) -> Any:
+    """An agent for ``role`` from an instance, a class or a ``"module:Class"`` string (kwargs go to the class).
+
+    A string is data (it may come from a scenario or bench file): its module is imported only when it lies under
+    ``starenv`` or a prefix in ``trust``, and only a class defined there that implements the role's protocol is
+    constructed; anything else is refused before any of its code runs."""
     if role not in ROLE_PROTOCOLS:
         raise ValueError(f"unknown agent role {role!r}; roles are {', '.join(ROLE_PROTOCOLS)}")
+    trust = check_trust(trust)
     if spec is None:
         return None
     if isinstance(spec, str):
@@ -71,13 +124,35 @@ def load_agent(spec: Any, role: str, **kwargs) -> Any:
         module_name, sep, class_name = spec.partition(":")
         if not sep or not module_name or not class_name:
             raise ValueError(f"{role}: agent {spec!r} must be written 'module:Class', e.g. {DEFAULTS['detector']!r}")
+        if not _trusted(module_name, trust):
+            raise ValueError(f"{role}: agent {spec!r}: module {module_name!r} is outside starenv and not trusted; "
+                             f"trust it explicitly (starenv --trust {module_name.split('.')[0]}, or "
+                             f"trust=[{module_name.split('.')[0]!r}] in Python) if you trust its code")
         try:
             spec = getattr(importlib.import_module(module_name), class_name)
         except (ImportError, AttributeError) as exc:
             raise ValueError(f"{role}: cannot load agent {module_name}:{class_name} ({exc})") from exc
-    agent = spec(**kwargs) if isinstance(spec, type) else spec
-    if kwargs and not isinstance(spec, type):
+        if not isinstance(spec, type):
+            raise ValueError(f"{role}: {module_name}:{class_name} is not a class (expected an agent class)")
+        if not _trusted(spec.__module__, trust):
+            raise ValueError(f"{role}: {module_name}:{class_name} is defined in {spec.__module__!r}, which is not "
+                             "trusted (name the class where it is defined)")
+    if isinstance(spec, type):
+        check_agent_class(spec, role)
+        try:
+            inspect.signature(spec).bind(**kwargs)
+        except TypeError as exc:
+            raise ValueError(f"{role}: options {sorted(kwargs)} do not fit {spec.__name__} ({exc})") from exc
+        except ValueError:  # no signature to check (a builtin): the constructor checks
+            pass
+        try:
+            agent = spec(**kwargs)
+        except TypeError as exc:  # an option of the wrong type
+            raise ValueError(f"{role}: {spec.__name__} refused its options {kwargs} ({exc})") from exc
+    elif kwargs:
         raise ValueError(f"{role}: options {sorted(kwargs)} can only be given with a class or 'module:Class'")
+    else:
+        agent = spec
     if not isinstance(agent, ROLE_PROTOCOLS[role]):
         raise ValueError(f"{role}: {type(agent).__name__} does not implement the "
                          f"{ROLE_PROTOCOLS[role].__name__} protocol")
@@ -90,16 +165,19 @@ class Pipeline:
     ``catalog_mag_limit`` is the onboard catalog's magnitude limit (the sensor's own star catalog, separate from the
     simulator's sky); None picks the limit that puts ~30 stars in the narrowest head's field (at most Hp 7.5): deep
     enough for tracking, while the lost-in-space database takes its own brighter cut.  ``options`` maps a role to
-    constructor options for agents given as class or string.
+    constructor options for agents given as class or string; ``trust``: module prefixes outside ``starenv`` that
+    ``"module:Class"`` strings may load agents from (see :func:`load_agent`).
     """
 
-    def __init__(self, catalog_mag_limit: float | None = None, options: dict[str, dict] | None = None, **agents):
+    def __init__(self, catalog_mag_limit: float | None = None, options: dict[str, dict] | None = None, *,
+                 trust: tuple[str, ...] = (), **agents):
         unknown = set(agents) - set(ROLE_PROTOCOLS)
         if unknown:
             raise ValueError(f"unknown agent roles {sorted(unknown)}; roles are {', '.join(ROLE_PROTOCOLS)}")
         options = options or {}
         specs = {**DEFAULTS, **agents}
-        self.agents = {role: load_agent(specs[role], role, **options.get(role, {})) for role in ROLE_PROTOCOLS}
+        self.agents = {role: load_agent(specs[role], role, trust=trust, **options.get(role, {}))
+                       for role in ROLE_PROTOCOLS}
         if self.agents["detector"] is None or self.agents["identifier"] is None or self.agents["solver"] is None:
             raise ValueError("a pipeline needs at least a detector, an identifier and a solver")
         self.catalog_mag_limit = catalog_mag_limit
@@ -108,14 +186,15 @@ class Pipeline:
         self.report = StepReport()
 
     @classmethod
-    def from_spec(cls, spec: PipelineSpec) -> Pipeline:
-        """The pipeline a :class:`~starenv.scenario.PipelineSpec` describes."""
-        return cls(spec.catalog_mag_limit, spec.options, **spec.agents)
+    def from_spec(cls, spec: PipelineSpec, trust: tuple[str, ...] = ()) -> Pipeline:
+        """The pipeline a :class:`~starenv.scenario.PipelineSpec` describes (``trust``: see :func:`load_agent`)."""
+        return cls(spec.catalog_mag_limit, spec.options, trust=trust, **spec.agents)
 
     @classmethod
-    def for_scenario(cls, scenario, agents: dict | None = None, options: dict | None = None) -> Pipeline:
+    def for_scenario(cls, scenario, agents: dict | None = None, options: dict | None = None,
+                     trust: tuple[str, ...] = ()) -> Pipeline:
         """The pipeline a scenario's ``[pipeline]`` table asks for, with ``agents`` / ``options`` taking precedence."""
-        return cls.from_spec(scenario.pipeline.replaced_by(PipelineSpec(agents or {}, options or {})))
+        return cls.from_spec(scenario.pipeline.replaced_by(PipelineSpec(agents or {}, options or {})), trust)
 
     @property
     def cameras(self) -> list:

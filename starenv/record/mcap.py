@@ -33,7 +33,8 @@ pipeline agents, starenv version) and, at the end, ``starenv.outcome`` (steps re
 Crash safety: the file is written as ``FILE.mcap.partial`` (chunks reach the file as they fill) and renamed to
 ``FILE.mcap`` when the recorder closes, also after an error (the error is logged to ``/log`` first), so an existing
 finished recording is replaced in one step, never half-overwritten.  A killed process leaves the ``.partial`` file,
-readable up to its last complete chunk with :func:`read_partial`.
+readable up to its last complete chunk: :func:`read_partial` counts its messages, :func:`recover` (``starenv recover
+FILE.mcap.partial``) writes a finished MCAP of its complete steps, and ``starenv view`` reviews it directly.
 """
 
 from __future__ import annotations
@@ -53,7 +54,6 @@ from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding
@@ -319,9 +319,25 @@ def check_mcap(path: str | os.PathLike) -> Path:
     return p
 
 
+def is_finished(path: str | os.PathLike) -> bool:
+    """Whether the MCAP file ``path`` was finished (it ends with the closing magic after its footer)."""
+    p = check_mcap(path)
+    with open(p, "rb") as f:
+        f.seek(max(0, p.stat().st_size - len(MAGIC)))
+        return p.stat().st_size >= 2 * len(MAGIC) and f.read() == MAGIC
+
+
+def check_finished(path: str | os.PathLike) -> Path:
+    """``path`` if it is a finished MCAP file, else ``ValueError`` saying how to read what it holds."""
+    if not is_finished(path):
+        raise ValueError(f"recording {str(path)!r}: unfinished (the run that wrote it stopped before closing it): "
+                         f"review it with 'starenv view', or make it whole with 'starenv recover'")
+    return Path(path)
+
+
 def read_metadata(path: str | os.PathLike) -> dict[str, dict[str, str]]:
     """The metadata records of a finished recording: name -> key/value strings."""
-    with open(check_mcap(path), "rb") as f:
+    with open(check_finished(path), "rb") as f:
         return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
 
 
@@ -364,7 +380,7 @@ def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int, next_fr
 def read_steps(path: str | os.PathLike) -> Iterator[StepData]:
     """The steps of a finished recording, in time order (messages without scores, e.g. the error that stopped a run,
     come back as a step of their own, numbered after the last scored one)."""
-    path = check_mcap(path)
+    path = check_finished(path)
     run = read_metadata(path)["starenv.run"]
     n_heads, origin = int(run["heads"]), int(run.get("time_origin_unix_ns", 0))  # older files: 0
     with open(path, "rb") as f:
@@ -383,25 +399,83 @@ def read_steps(path: str | os.PathLike) -> Iterator[StepData]:
             yield _step_from(group, t_group - origin, n_heads, frame + 1)
 
 
+def _complete_records(path: str | os.PathLike) -> tuple[dict, dict, list, list]:
+    """Schemas (id -> record), channels (id -> record), metadata records and messages (in file order) of a possibly
+    unfinished file, read as a stream up to the first incomplete or damaged record; a chunk is used whole or not at
+    all (its CRC is checked before any of its messages is kept)."""
+    from mcap.records import Channel, Chunk, Message, Metadata, Schema
+    from mcap.stream_reader import breakup_chunk
+
+    schemas, channels, metadata, messages_ = {}, {}, [], []
+
+    def take(record) -> None:
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, Metadata):
+            metadata.append(record)
+        elif isinstance(record, Message):
+            messages_.append(record)
+
+    with open(check_mcap(path), "rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+                if isinstance(record, Chunk):
+                    inner = list(breakup_chunk(record, validate_crc=True))  # raises before anything is kept
+                    for r in inner:
+                        take(r)
+                else:
+                    take(record)
+        except Exception:  # truncation, a CRC or decompression error: what came before is kept
+            pass
+    return schemas, channels, metadata, messages_
+
+
 def read_partial(path: str | os.PathLike) -> dict[str, int]:
     """Messages per topic in a possibly unfinished file (e.g. the ``.partial`` of a killed run), read as a stream up
     to the first incomplete record; chunk CRCs are checked."""
-    from mcap.records import Channel, Chunk
-    from mcap.stream_reader import breakup_chunk
-
+    _, channels, _, msgs = _complete_records(path)
     counts: dict[str, int] = {}
-    topics: dict[int, str] = {}
-    with open(path, "rb") as f:
-        try:
-            for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
-                if isinstance(record, Channel):
-                    topics[record.id] = record.topic
-                elif isinstance(record, Chunk):
-                    for inner in breakup_chunk(record, validate_crc=True):
-                        if isinstance(inner, Channel):
-                            topics[inner.id] = inner.topic
-                        elif hasattr(inner, "channel_id"):
-                            counts[topics[inner.channel_id]] = counts.get(topics[inner.channel_id], 0) + 1
-        except (McapError, EOFError, ValueError):
-            pass  # the end of what was written before the process died
+    for m in msgs:
+        topic = channels[m.channel_id].topic
+        counts[topic] = counts.get(topic, 0) + 1
     return counts
+
+
+def recover(partial: str | os.PathLike, out: str | os.PathLike) -> int:
+    """Write ``out``, a finished MCAP holding every complete step of the unfinished recording ``partial`` (up to its
+    last complete chunk; a step counts when its ``/gyro`` message, the last of a step, reached the file), with the
+    recording's metadata and a ``starenv.outcome`` of status ``recovered``.  Returns the number of steps kept."""
+    schemas, channels, metadata, msgs = _complete_records(partial)
+    names = {m.name: dict(m.metadata) for m in metadata}
+    if "starenv.run" not in names:
+        raise ValueError(f"recording {str(partial)!r}: nothing recoverable (no starenv.run metadata reached the file)")
+    gyro = {cid for cid, c in channels.items() if c.topic == "/gyro"}
+    done = {m.log_time for m in msgs if m.channel_id in gyro}
+    kept = [m for m in msgs if m.log_time in done and m.channel_id in channels]
+    out = Path(out)
+    tmp = out.with_name(out.name + ".tmp")
+    with open(tmp, "wb") as f:
+        writer = Writer(f, compression=CompressionType.ZSTD)
+        writer.start(profile="", library=f"{LIBRARY_IDENTIFIER} starenv/{starenv.__version__}")
+        for m in metadata:
+            if m.name != "starenv.outcome":
+                writer.add_metadata(m.name, dict(m.metadata))
+        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in schemas.items()}
+        channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
+                                                    dict(c.metadata)) for cid, c in channels.items()}
+        for m in kept:
+            writer.add_message(channel_ids[m.channel_id], log_time=m.log_time, data=m.data,
+                               publish_time=m.publish_time, sequence=m.sequence)
+        run = names["starenv.run"]
+        agents = json.loads(run.get("pipeline", "null"))
+        writer.add_metadata("starenv.outcome", {
+            "status": "recovered", "steps": str(len(done)),
+            "error": f"the run stopped before its recording was finished; {len(done)} complete steps recovered",
+            "reproduce": reproduce_command("scenario.toml", int(run["seed"]), len(done), agents),
+            "scenario_toml": "the 'toml' entry of the starenv.scenario metadata record",
+        })
+        writer.finish()
+    os.replace(tmp, out)
+    return len(done)

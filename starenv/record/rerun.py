@@ -161,11 +161,11 @@ def log_step(rec, data: StepData, cameras=None) -> None:
 
 
 def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike, on_step=None) -> Path:
-    """Build the Rerun recording of an MCAP recording; returns the .rrd path.  ``on_step()`` (optional) is called
-    after each step is logged (a progress bar)."""
-    from starenv.record.mcap import check_mcap, read_metadata, read_steps
+    """Build the Rerun recording of a finished MCAP recording; returns the .rrd path.  ``on_step()`` (optional) is
+    called after each step is logged (a progress bar)."""
+    from starenv.record.mcap import check_finished, read_metadata, read_steps
 
-    mcap_path = check_mcap(mcap_path)
+    mcap_path = check_finished(mcap_path)
     digest = hashlib.sha256()
     with open(mcap_path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

@@ -55,7 +55,10 @@ Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
   trail centroids within 3 px), ``detection_recall`` / ``detection_precision`` (0-1), ``id_rate`` (correct ids /
   detectable stars, 0-1), ``false_id_rate`` (wrong / claimed, 0-1), ``ids_correct`` / ``ids_wrong`` (counts),
   ``solved`` (>= 3 correct ids and none wrong), ``prediction_error_px_mean`` / ``prediction_error_px_max`` (px,
-  predicted vs true mid-exposure positions), ``predictions_scored`` (count).
+  predicted vs true mid-exposure positions), ``predictions_scored`` (count), and with a distortion corrector's
+  ``corrected_xy`` in the action ``correction_error_px_mean`` / ``correction_error_x_px`` / ``correction_error_y_px``
+  (px, corrected positions vs where the calibrated camera puts the matched true stars; mean length and mean
+  per-axis size) and ``distortion_px_mean`` (px, the true offset's mean length on those stars).
 
 Known limit: in a Gymnasium vector env, a step where one sub-env's estimate is available and another's is not fails
 while the vector env merges the infos (``scores["attitude"]`` is a dict in one and None in the other).

@@ -259,7 +259,7 @@ def test_wrong_types_are_refused_with_expected_and_got(key, value):
 
 def test_render_refuses_a_frame_outside_the_scenario(capsys):
     assert cli.main(["render", "paper_000", "--frame", "1500"]) == 2  # 15 s at 100 Hz: frames 0 .. 1499
-    assert "--frame: expected a frame index in [0, 1499]" in capsys.readouterr().err
+    assert "--frame 1500: expected an integer in [0, 1499] (paper_000 has 1500 frames)" in capsys.readouterr().err
 
 
 # --- crashes lose nothing ------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
 """Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``,
-``starenv bench BENCH``, ``starenv view FILE``."""
+``starenv bench BENCH``, ``starenv view FILE``, ``starenv export FILE``,
+``starenv recover FILE.mcap.partial``."""
 
 from __future__ import annotations
 
@@ -12,6 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from starenv import scenario as scenario_mod
+
+TRUST_HELP = ("let agents ('module:Class' in the scenario, bench file or --agent) load from this module prefix outside "
+              "starenv: its code will run (repeatable)")
 
 
 def _overrides(pairs: list[str]) -> dict:
@@ -35,25 +39,65 @@ def cmd_scenarios(args) -> int:
     return 0
 
 
+def _bounded(name: str, value: int | None, low: int, high: int, why: str) -> None:
+    """Refuse ``value`` outside ``[low, high]`` with a message naming the option and the reason for the bound."""
+    if value is not None and not low <= value <= high:
+        raise ValueError(f"{name} {value}: expected an integer in [{low}, {high}] ({why})")
+
+
+def _header(sc, overrides: dict) -> None:
+    """The scenario's name and description, and the overrides that change it (the description is the file's)."""
+    print(f"{sc.name}: {sc.description}")
+    if overrides:
+        print("  overrides: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in overrides.items())
+              + " (the description above is the file's)")
+
+
+def _progress(total: int, desc: str, quiet: bool):
+    """A tqdm bar on stderr, shown on a terminal only (or never with ``--quiet``)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", disable=True if quiet else None, leave=False)
+
+
 def cmd_render(args) -> int:
-    import cv2
-
     from starenv.sim.sensor import StarSensor
-    from starenv.view import mosaic, overlay
 
-    sc = scenario_mod.load(args.scenario, _overrides(args.set))
+    overrides = _overrides(args.set)
+    sc = scenario_mod.load(args.scenario, overrides)
+    _bounded("--frame", args.frame, 0, sc.n_steps - 1, f"{sc.name} has {sc.n_steps} frames")
+    _bounded("--seed", args.seed, 0, 2**63 - 1, "a non-negative seed")
+    fmt = args.format
+    out = Path(args.out or f"recordings/{sc.name}_frame{args.frame}.{fmt}")
+    if out.suffix != f".{fmt}":
+        raise ValueError(f"--out {str(out)!r}: expected a file name ending in .{fmt} for --format {fmt}")
+    if fmt == "fits":
+        from starenv.record.frames import _astropy
+
+        _astropy()  # a missing extra fails before the frames are simulated
     sensor = StarSensor(sc)
     sensor.reset(sc.seed if args.seed is None else args.seed)
-    for _ in range(args.frame + 1):
-        frame = sensor.next_frame()
-    images = [overlay(h.image, h.truth if args.truth else None, h.dropped) for h in frame.heads]
-    out = Path(args.out or f"recordings/{sc.name}_frame{args.frame}.png")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), cv2.cvtColor(mosaic(images), cv2.COLOR_RGB2BGR)):
-        raise OSError(f"could not write {out}")
+    with _progress(args.frame + 1, f"simulating to frame {args.frame}", args.quiet) as bar:
+        for _ in range(args.frame + 1):
+            frame = sensor.next_frame()
+            bar.update()
+    if fmt == "png":
+        import cv2
+
+        from starenv.view import mosaic, overlay
+
+        images = [overlay(h.image, h.truth if args.truth else None, h.dropped) for h in frame.heads]
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(out), cv2.cvtColor(mosaic(images), cv2.COLOR_RGB2BGR)):
+            raise OSError(f"could not write {out}")
+    else:
+        from starenv.record.frames import write_fits, write_npz
+
+        (write_fits if fmt == "fits" else write_npz)(frame, sc, out)
     stars = ", ".join(f"{hf.truth.catalog_id.size} stars" + (" (dropped)" if hf.dropped else "") for hf in frame.heads)
     rate_dps = math.degrees(float(np.linalg.norm(sc.trajectory.body_rate(frame.t_mid))))
-    print(f"{sc.name}: frame {frame.index} at t = {frame.t_mid:.4f} s, |w| = {rate_dps:.3g} deg/s, {stars}")
+    _header(sc, overrides)
+    print(f"  frame {frame.index} at t = {frame.t_mid:.4f} s, |w| = {rate_dps:.3g} deg/s, {stars}")
     print(f"wrote {out}")
     return 0
 
@@ -68,17 +112,38 @@ def _agents(pairs: list[str]) -> dict[str, str]:
     return out
 
 
+class _Tick:
+    """Episode observer that advances a progress bar once per step."""
+
+    def __init__(self, bar):
+        self.bar = bar
+
+    def start(self, env, seed, pipeline) -> None:
+        pass
+
+    def step(self, log) -> None:
+        self.bar.update()
+
+    def close(self, error=None) -> None:
+        pass
+
+
 def cmd_run(args) -> int:
     from starenv.env import StarSensorEnv
     from starenv.episode import run_episode
     from starenv.scoring import summarize
 
-    env = StarSensorEnv(args.scenario, _overrides(args.set))
+    overrides = _overrides(args.set)
+    env = StarSensorEnv(args.scenario, overrides)
+    last = env.scenario.n_steps - 1
+    _bounded("--steps", args.steps, 1, last, f"{env.scenario.name} has {env.scenario.n_steps} frames: "
+             f"at most {last} scored steps")
+    _bounded("--seed", args.seed, 0, 2**63 - 1, "a non-negative seed")
     pipeline = None
     if args.pipeline != "none":
         from starenv.agents.pipeline import Pipeline
 
-        pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent))
+        pipeline = Pipeline.for_scenario(env.scenario, _agents(args.agent), trust=tuple(args.trust))
     sc = env.scenario
     observers = []
     if args.record:
@@ -91,13 +156,14 @@ def cmd_run(args) -> int:
         analytics_off()
 
         observers.append(RerunRecorder(args.rrd))
-    result = run_episode(env, pipeline, seed=args.seed, steps=args.steps, observers=observers)
+    with _progress(last if args.steps is None else args.steps, sc.name, args.quiet) as bar:
+        result = run_episode(env, pipeline, seed=args.seed, steps=args.steps, observers=[*observers, _Tick(bar)])
     for path in (args.record, args.rrd):
         if path:
             print(f"wrote {path}")
     records, wall, dropped, lost_at = result.records, result.wall_s, result.dropped, result.lost_at
     summary = summarize(records)
-    print(f"{sc.name}: {sc.description}")
+    _header(sc, overrides)
     print(f"  {len(records)} steps ({len(records) / sc.frame_rate_hz:.2f} s simulated) in {wall:.2f} s wall; "
           f"frames dropped per head: {dropped.tolist()}; lost rule fired at step: {lost_at}")
     if pipeline is None:
@@ -125,28 +191,72 @@ def cmd_view(args) -> int:
     import os
     import shutil
     import subprocess
+    import tempfile
 
-    from starenv.record.mcap import read_metadata
+    from starenv.record.mcap import is_finished, read_metadata, recover
     from starenv.record.rerun import analytics_off, mcap_to_rrd
 
     analytics_off()
     mcap_path = Path(args.recording)
-    rrd = Path(args.rrd) if args.rrd else mcap_path.with_suffix(".rrd")
-    mcap_to_rrd(mcap_path, rrd)
-    meta = read_metadata(mcap_path)
+    partial = mcap_path.name.endswith(".partial") or not is_finished(mcap_path)
+    stem = mcap_path.with_name(mcap_path.name.removesuffix(".partial"))
+    rrd = Path(args.rrd) if args.rrd else stem.with_suffix(".rrd")
+    with tempfile.TemporaryDirectory() as tmp:
+        if partial:  # an unfinished recording (a killed run): review what reached the file
+            finished = Path(tmp) / stem.name
+            steps = recover(mcap_path, finished)
+            print(f"{mcap_path} is unfinished: reviewing its {steps} complete steps, up to its last complete chunk "
+                  f"(starenv recover {mcap_path} writes them as a finished MCAP)")
+            mcap_path = finished
+        meta = read_metadata(mcap_path)
+        total = meta.get("starenv.outcome", {}).get("steps")
+        with _progress(int(total) if total else None, "building the review", args.quiet) as bar:
+            mcap_to_rrd(mcap_path, rrd, on_step=bar.update)
     run, outcome = meta["starenv.run"], meta.get("starenv.outcome", {})
     print(f"{meta['starenv.scenario']['name']}, seed {run['seed']}: {outcome.get('steps', '?')} steps, "
           f"{outcome.get('status', 'unfinished')}{': ' + outcome['error'] if outcome.get('error') else ''}")
     if outcome.get("reproduce"):
-        print(f"  reproduce: {outcome['reproduce']}  (scenario.toml: the starenv.scenario metadata record)")
+        print(f"  reproduce: {outcome['reproduce']}  (starenv export {mcap_path} --scenario scenario.toml writes it)")
     print(f"wrote {rrd}")
     if not args.rrd and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         viewer = shutil.which("rerun")
         if viewer is None:
-            print("no Rerun viewer found (install starenv[viewer]); open the .rrd with any Rerun 0.41 viewer")
+            print("no `rerun` viewer on PATH (rerun-sdk installs it); open the .rrd with any Rerun 0.41 viewer")
         else:
             subprocess.Popen([viewer, str(rrd)])  # the viewer outlives this command
             print(f"opened the Rerun viewer on {rrd}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from starenv.record.mcap import read_metadata
+
+    meta = read_metadata(args.recording)
+    out = Path(args.scenario)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(meta["starenv.scenario"]["toml"], encoding="utf-8")
+    print(f"wrote {out} (the scenario of {args.recording}, overrides applied)")
+    reproduce = meta.get("starenv.outcome", {}).get("reproduce")
+    if reproduce:
+        import shlex
+
+        words = shlex.split(reproduce)
+        words[2] = str(out)  # ``starenv run SCENARIO ...``: the file just written
+        print(f"  reproduce: {shlex.join(words)}")
+    return 0
+
+
+def cmd_recover(args) -> int:
+    from starenv.record.mcap import recover
+
+    partial = Path(args.partial)
+    if not partial.name.endswith(".partial"):
+        raise ValueError(f"recover: expected an unfinished recording FILE.mcap.partial, got {str(partial)!r}")
+    out = Path(args.out) if args.out else partial.with_name(partial.name.removesuffix(".partial"))
+    if out.exists() and not args.out:
+        raise ValueError(f"recover: {out} exists; name another output with --out")
+    steps = recover(partial, out)
+    print(f"wrote {out}: {steps} complete steps recovered from {partial}")
     return 0
 
 
@@ -160,7 +270,7 @@ def cmd_bench(args) -> int:
     for module in ("tqdm", "matplotlib"):
         if importlib.util.find_spec(module) is None:  # fail before the runs, not at the report after them
             raise ValueError(f"starenv bench needs {module} (the 'report' extra: pip install 'starenv[report]')")
-    bench = load_bench(args.bench)
+    bench = load_bench(args.bench, trust=tuple(args.trust))
     check_writable(Path(args.out))
     if args.jobs is not None and args.jobs < 1:
         raise ValueError(f"--jobs: expected an integer >= 1, got {args.jobs}")
@@ -195,15 +305,22 @@ def main(argv: list[str] | None = None) -> int:
         except (ValueError, OSError) as exc:
             print(f"starenv train: error: {exc}", file=sys.stderr)
             return 2
+    import starenv
+
     parser = argparse.ArgumentParser(prog="starenv", description="Star sensor simulator under dynamic conditions")
+    parser.add_argument("--version", action="version", version=f"starenv {starenv.__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("scenarios", help="list the bundled scenarios").set_defaults(fn=cmd_scenarios)
-    p = sub.add_parser("render", help="render one frame of a scenario to a PNG, truth overlaid")
+    p = sub.add_parser("render", help="render one frame of a scenario: a PNG with truth, 16-bit FITS or npz")
     p.add_argument("scenario", help="bundled scenario name or path to a .toml file")
     p.add_argument("--frame", type=int, default=0, help="frame index (default 0)")
     p.add_argument("--seed", type=int, default=None, help="seed (default: the scenario's)")
-    p.add_argument("--out", default=None, help="PNG path (default recordings/NAME_frameN.png)")
-    p.add_argument("--no-truth", dest="truth", action="store_false", help="do not draw the true star trails")
+    p.add_argument("--out", default=None, help="output file (default recordings/NAME_frameN.FORMAT)")
+    p.add_argument("--no-truth", dest="truth", action="store_false", help="do not draw the true star trails (png)")
+    p.add_argument("--format", choices=("png", "fits", "npz"), default="png",
+                   help="png: 8-bit display stretch with truth; fits: raw 16-bit counts per head with a truth WCS "
+                        "(starenv[fits]); npz: raw frames with their truth")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE", help="override a scenario key")
     p.set_defaults(fn=cmd_render)
     p = sub.add_parser("run", help="run an episode of a scenario and print a summary")
@@ -216,15 +333,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--agent", action="append", default=[], metavar="ROLE=module:Class",
                    help="replace one agent of the pipeline (roles: predictor, deblurrer, detector, corrector, "
                         "identifier, solver; ROLE=none empties an optional role)")
+    p.add_argument("--trust", action="append", default=[], metavar="MODULE_PREFIX", help=TRUST_HELP)
     p.add_argument("--record", default=None, metavar="FILE.mcap",
                    help="record the episode to an MCAP file (Foxglove schemas; open with Foxglove or starenv view)")
     p.add_argument("--rrd", default=None, metavar="FILE.rrd", help="record the episode to a Rerun .rrd file")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_run)
-    p = sub.add_parser("view", help="review an MCAP recording in Rerun (opens the viewer when a display exists)")
+    p = sub.add_parser("export", help="write the scenario a recording was made from (what its reproduce command runs)")
     p.add_argument("recording", help="an MCAP file written by starenv run --record")
+    p.add_argument("--scenario", default="scenario.toml", metavar="FILE.toml",
+                   help="where to write the scenario (default scenario.toml, the name the reproduce command uses)")
+    p.set_defaults(fn=cmd_export)
+    p = sub.add_parser("view", help="review an MCAP recording in Rerun (opens the viewer when a display exists)")
+    p.add_argument("recording", help="an MCAP file written by starenv run --record (or the FILE.mcap.partial of a "
+                                     "killed run: its complete steps are reviewed)")
     p.add_argument("--rrd", default=None, metavar="FILE.rrd",
                    help="write the Rerun recording here and do not open the viewer (default: next to the MCAP file)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_view)
+    p = sub.add_parser("recover", help="turn the .mcap.partial of a killed run into a finished MCAP of its complete "
+                                       "steps")
+    p.add_argument("partial", help="FILE.mcap.partial")
+    p.add_argument("--out", default=None, metavar="FILE.mcap", help="output (default: FILE.mcap, if it does not exist)")
+    p.set_defaults(fn=cmd_recover)
     p = sub.add_parser("bench", help="run a benchmark (scenarios x pipelines x seeds, sweeps) and write a report")
     p.add_argument("bench", help="bench file (.toml) or bundled bench name (e.g. bundled)")
     p.add_argument("--out", required=True, help="output folder (runs/, summary tables, plots/, report.md)")
@@ -232,6 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--trust", action="append", default=[], metavar="MODULE_PREFIX", help=TRUST_HELP)
     p.set_defaults(fn=cmd_bench)
     p = sub.add_parser("dataset", help="generate a learning dataset (shards of simulated samples) from a spec")
     p.add_argument("spec", help="dataset spec (.toml), see starenv/datasets/spec.py")
@@ -245,7 +377,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.fn(args)
-    except (scenario_mod.ScenarioError, ValueError, OSError) as exc:
+    except (scenario_mod.ScenarioError, ValueError, OSError, ModuleNotFoundError) as exc:
         print(f"starenv: error: {exc}", file=sys.stderr)
         return 2
 

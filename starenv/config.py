@@ -58,11 +58,14 @@ class Table:
         raise self.error(f"{self.source}: {self.where(key)}: expected {expected}, {found}")
 
     def raw(self, key: str, default: Any, expected: str) -> Any:
+        """The value of ``key`` (``default`` when absent); a present ``None`` (an override) is always refused."""
         self.used.add(key)
         if key not in self.data:
             if default is REQUIRED:
-                self.fail(key, expected)
+                self.fail(key, expected or "a value")
             return default
+        if self.data[key] is None:
+            self.fail(key, expected or "a value", None)
         return self.data[key]
 
     def get(self, key: str, default: Any = None) -> Any:
@@ -71,10 +74,11 @@ class Table:
 
     def integer_list(self, key: str, default: Any, low: int) -> Any:
         """A non-empty list of integers >= ``low`` (``default`` when absent)."""
-        v = self.raw(key, default, "")
+        expected = f"a non-empty list of integers >= {low}"
+        v = self.raw(key, default, expected)
         ok = isinstance(v, list) and v and all(isinstance(x, int) and not isinstance(x, bool) and x >= low for x in v)
         if v is not default and not ok:
-            self.fail(key, f"a non-empty list of integers >= {low}", v)
+            self.fail(key, expected, v)
         return v
 
     def number(self, key, default=REQUIRED, low=-math.inf, high=math.inf, *, low_open=False, integer=False):

@@ -18,19 +18,56 @@ Observation (``Dict``), as the sensor delivers it -- never truth:
 Action (``Dict``): ``attitude`` float64 (4,) quaternion ``[x, y, z, w]`` (inertial -> body, at mid-exposure of the
 observed frame; normalised on receipt) and ``attitude_valid`` int8 (); optionally per-head star lists padded to
 ``MAX_STARS`` rows, the rows in use flagged by a 0/1 mask: ``detections_xy`` (heads, MAX_STARS, 2) px with
-``detection_mask`` (heads, MAX_STARS) and ``catalog_ids`` (heads, MAX_STARS) (-1: not identified); ``predicted_xy``
+``detection_mask`` (heads, MAX_STARS) and ``catalog_ids`` (heads, MAX_STARS) (-1: not identified), ``corrected_xy``
+(heads, MAX_STARS, 2) px (the same rows after distortion correction: where the calibrated camera images each
+detection's direction); ``predicted_xy``
 (heads, MAX_STARS, 2) px with ``predicted_ids`` and ``prediction_mask`` (heads, MAX_STARS).  ``None``, a missing
 ``attitude`` or ``attitude_valid = 0`` makes the step *unavailable*; NaN/inf, a wrong shape or dtype raises
 ``ValueError`` naming the key.  Vector environments batch every key: start from :meth:`StarSensorEnv.null_action`.
 
 Reward: ``max(0, 1 - error / threshold)`` for an available estimate (1 when exact, 0 at or beyond the scenario's
 ``availability_threshold_arcsec``), 0 when unavailable.  ``terminated`` once ``lost_after_steps`` consecutive steps
-had no available estimate within the threshold ("lost"); ``truncated`` after the scenario's last frame.
+had no available estimate within the threshold ("lost"); ``truncated`` after the scenario's last frame (the bundled
+ids register the same count as ``max_episode_steps``: ``n_steps - 1`` steps).  A lost episode may still be stepped
+(benchmarks score whole episodes); stepping after ``truncated`` raises ``gymnasium.error.ResetNeeded``: there is no
+next frame.  ``reset(seed=...)`` takes a Python or numpy integer in [0, 2**63); ``reset`` takes no options
+(``options`` must be None or empty: anything else raises ``ValueError`` rather than being ignored).
+
+Bounds.  Every box is finite so that ``observation_space.sample()`` works: times lie in ``[0, T]`` with ``T`` the
+episode's last mid-exposure time plus one frame period (``time_horizon_s``; an env stepped past truncation leaves
+it), gyro rates in ``[-GYRO_RATE_BOUND, GYRO_RATE_BOUND]`` rad/s (3600 deg/s; a bound on the space, the gyro model
+does not saturate).
+
+Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
+
+* ``truth`` (of the returned observation's frame): ``frame`` int (index), ``time_s`` float (s, mid-exposure),
+  ``attitude`` float64 (4,) ``[x, y, z, w]`` (ICRS -> body at mid-exposure), ``body_rate`` float64 (3,) (rad/s, body
+  frame), ``dropped`` list of bool per head, ``stars`` list per head of dicts of arrays, one row per star on the
+  frame: ``catalog_id`` (HIP number), ``magnitude`` (Hipparcos Hp), ``xy_mid`` / ``xy_centroid`` / ``xy_start`` /
+  ``xy_end`` (n, 2) px (distorted pixel coordinates; mid-exposure position, trail centroid, trail ends),
+  ``electrons`` and ``peak_electrons`` (e-; total and brightest pixel), ``detectable`` bool.
+* ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int,
+  ``available`` bool, ``within_threshold`` bool (error < ``availability_threshold_arcsec``), ``attitude`` (None when
+  unavailable) ``{"total_arcsec": float, "heads": [{"pitch_arcsec", "yaw_arcsec", "roll_arcsec",
+  "cross_boresight_arcsec"}]}`` (arcsec; the error rotation in each head's camera frame: pitch about +X, yaw about
+  +Y, roll about the boresight +Z, absolute values), ``heads`` a list per head of star scores (None where the action
+  gave nothing to score): ``centroid_error_px_mean`` / ``centroid_error_px_max`` (px, detections matched to true
+  trail centroids within 3 px), ``detection_recall`` / ``detection_precision`` (0-1), ``id_rate`` (correct ids /
+  detectable stars, 0-1), ``false_id_rate`` (wrong / claimed, 0-1), ``ids_correct`` / ``ids_wrong`` (counts),
+  ``solved`` (>= 3 correct ids and none wrong), ``prediction_error_px_mean`` / ``prediction_error_px_max`` (px,
+  predicted vs true mid-exposure positions), ``predictions_scored`` (count), and with a distortion corrector's
+  ``corrected_xy`` in the action ``correction_error_px_mean`` / ``correction_error_x_px`` / ``correction_error_y_px``
+  (px, corrected positions vs where the calibrated camera puts the matched true stars; mean length and mean
+  per-axis size) and ``distortion_px_mean`` (px, the true offset's mean length on those stars).
+
+Known limit: in a Gymnasium vector env, a step where one sub-env's estimate is available and another's is not fails
+while the vector env merges the infos (``scores["attitude"]`` is a dict in one and None in the other).
 """
 
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -40,8 +77,10 @@ from scipy.spatial.transform import Rotation
 
 from starenv import scenario as scenario_mod
 from starenv.agents.base import MAX_STARS, SensorInfo
-from starenv.scoring import attitude_error, score_stars
+from starenv.scoring import attitude_error, calibrated_positions, score_stars
 from starenv.sim.sensor import Frame, StarSensor
+
+GYRO_RATE_BOUND = math.radians(3600.0)  # rad/s, the observation space's bound on each gyro rate component
 
 
 class StarSensorEnv(gym.Env):
@@ -57,6 +96,9 @@ class StarSensorEnv(gym.Env):
     ):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        if not isinstance(scenario, str | os.PathLike | dict):
+            raise ValueError("scenario: expected a bundled scenario name, a .toml path or a parsed scenario dict, "
+                             f"got {type(scenario).__name__} {scenario!r}")
         self.scenario = scenario_mod.load(scenario, overrides)
         self.render_mode = render_mode
         self.sensor = StarSensor(self.scenario)
@@ -66,20 +108,20 @@ class StarSensorEnv(gym.Env):
         height = max(h.camera.height for h in sc.heads)
         width = max(h.camera.width for h in sc.heads)
         self.max_gyro = int(math.ceil(sc.gyro.rate_hz / sc.frame_rate_hz)) + 1
-        big = np.finfo(np.float64).max
+        horizon = self.time_horizon_s
         self.observation_space = spaces.Dict(
             {
                 "frames": spaces.Box(0, 65535, (n_heads, height, width), np.uint16),
                 "frame_valid": spaces.Box(0, 1, (n_heads,), np.int8),
                 "gyro": spaces.Dict(
                     {
-                        "t": spaces.Box(0.0, big, (self.max_gyro,), np.float64),
-                        "rate": spaces.Box(-big, big, (self.max_gyro, 3), np.float64),
+                        "t": spaces.Box(0.0, horizon, (self.max_gyro,), np.float64),
+                        "rate": spaces.Box(-GYRO_RATE_BOUND, GYRO_RATE_BOUND, (self.max_gyro, 3), np.float64),
                         "count": spaces.Box(0, self.max_gyro, (), np.int64),
                     }
                 ),
-                "time_s": spaces.Box(0.0, big, (), np.float64),
-                "exposure_s": spaces.Box(0.0, big, (), np.float64),
+                "time_s": spaces.Box(0.0, horizon, (), np.float64),
+                "exposure_s": spaces.Box(0.0, horizon, (), np.float64),
             }
         )
         self.action_space = spaces.Dict(
@@ -88,6 +130,7 @@ class StarSensorEnv(gym.Env):
                 "attitude_valid": spaces.Box(0, 1, (), np.int8),
                 "detections_xy": spaces.Box(-1e4, 1e5, (n_heads, MAX_STARS, 2), np.float64),
                 "detection_mask": spaces.Box(0, 1, (n_heads, MAX_STARS), np.int8),
+                "corrected_xy": spaces.Box(-1e4, 1e5, (n_heads, MAX_STARS, 2), np.float64),
                 "catalog_ids": spaces.Box(-1, 2**31 - 1, (n_heads, MAX_STARS), np.int64),
                 "predicted_xy": spaces.Box(-1e4, 1e5, (n_heads, MAX_STARS, 2), np.float64),
                 "predicted_ids": spaces.Box(-1, 2**31 - 1, (n_heads, MAX_STARS), np.int64),
@@ -97,6 +140,12 @@ class StarSensorEnv(gym.Env):
         self._frame: Frame | None = None
         self._steps = 0
         self._lost_steps = 0
+
+    @property
+    def time_horizon_s(self) -> float:
+        """Upper bound of every time in an episode's observations (s): the last frame's end plus one frame period."""
+        sc = self.scenario
+        return (sc.n_steps + 1) * sc.frame_period_s + sc.exposure_s
 
     def null_action(self) -> dict:
         """A complete action that claims nothing (unavailable, empty star lists): a template to fill in, and what
@@ -115,6 +164,18 @@ class StarSensorEnv(gym.Env):
         return SensorInfo(self.cameras, sc.gyro.rate_hz, sc.epoch)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode: returns ``(observation of frame 0, {"truth": ...})``.
+
+        ``seed`` (int) reseeds every noise source (the first reset without one uses the scenario's ``seed``);
+        ``options`` must be None or empty (``ValueError`` otherwise).
+        """
+        if options is not None and (not isinstance(options, dict) or options):
+            raise ValueError(f"reset options: StarSensorEnv takes none (expected None or {{}}), got {options!r}; "
+                             "change the scenario with overrides instead")
+        if seed is not None:
+            if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= int(seed) < 2**63:
+                raise ValueError(f"seed: expected None or an integer in [0, 2**63), got {seed!r}")
+            seed = int(seed)
         if seed is None and self._np_random is None:
             seed = self.scenario.seed
         super().reset(seed=seed)
@@ -125,8 +186,16 @@ class StarSensorEnv(gym.Env):
         return self._observation(self._frame), {"truth": self._truth(self._frame)}
 
     def step(self, action):
+        """Score ``action`` (the estimate for the last observed frame), then simulate the next frame.
+
+        Returns ``(observation, reward, terminated, truncated, info)``; ``info`` holds ``truth`` (of the returned
+        frame) and ``scores`` (of the action); see the module docstring for every key and unit.
+        """
         if self._frame is None:
             raise RuntimeError("call reset() before step()")
+        if self._steps >= self.scenario.n_steps - 1:
+            raise gym.error.ResetNeeded(f"the episode ended (truncated) after its last frame, step {self._steps}: "
+                                        "call reset() before step()")
         parsed = parse_action(action, len(self.scenario.heads))
         scores = self._score(parsed, self._frame)
         threshold = self.scenario.availability_threshold_arcsec
@@ -141,6 +210,8 @@ class StarSensorEnv(gym.Env):
         return self._observation(self._frame), float(reward), terminated, truncated, info
 
     def render(self):
+        """``render_mode="rgb_array"``: uint8 (H, W, 3) mosaic of the last frame's heads (a display stretch, not
+        radiometry), true star trails overlaid; None in any other mode or before ``reset``."""
         if self.render_mode != "rgb_array" or self._frame is None:
             return None
         from starenv.view import mosaic, overlay
@@ -183,6 +254,7 @@ class StarSensorEnv(gym.Env):
         att = attitude_error(Rotation.from_quat(action["attitude"]), frame.attitude, mountings) if available else None
         heads = []
         for i, h in enumerate(frame.heads):
+            spec = self.scenario.heads[i]
             heads.append(
                 vars(
                     score_stars(
@@ -191,6 +263,8 @@ class StarSensorEnv(gym.Env):
                         claimed_ids=action["catalog_ids"][i],
                         predicted_ids=action["predicted_ids"][i],
                         predicted_xy=action["predicted_xy"][i],
+                        corrected_xy=action["corrected_xy"][i],
+                        calibrated_xy=calibrated_positions(h.truth.xy_centroid, spec.camera, spec.calibrated),
                     )
                 )
             )
@@ -206,7 +280,10 @@ class StarSensorEnv(gym.Env):
 
 def _array(action: dict, key: str, shape: tuple, kind: str) -> np.ndarray:
     value = action[key]
-    arr = np.asarray(value)
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise ValueError(f"action[{key!r}] must be an array of shape {shape}, got {value!r:.80} ({exc})") from exc
     if kind == "f" and arr.dtype.kind not in "fiu" or kind == "i" and arr.dtype.kind not in "iu":
         expected = "real numbers" if kind == "f" else "integers"
         raise ValueError(f"action[{key!r}] must hold {expected}, got dtype {arr.dtype}")
@@ -220,12 +297,15 @@ def _array(action: dict, key: str, shape: tuple, kind: str) -> np.ndarray:
 def parse_action(action, n_heads: int) -> dict:
     """Validate an action; returns per-head lists (None where absent) and the attitude quaternion or None."""
     out: dict[str, Any] = {"attitude": None}
-    keys = ("detections_xy", "catalog_ids", "predicted_xy", "predicted_ids")
+    keys = ("detections_xy", "catalog_ids", "corrected_xy", "predicted_xy", "predicted_ids")
     out.update({k: [None] * n_heads for k in keys})
     if action is None:
         return out
     if not isinstance(action, dict):
         raise ValueError(f"action must be a dict (see StarSensorEnv.action_space) or None, got {type(action).__name__}")
+    bad_keys = [k for k in action if not isinstance(k, str)]
+    if bad_keys:
+        raise ValueError(f"action keys must be strings, got {bad_keys[0]!r}")
     unknown = set(action) - {"attitude", "attitude_valid", "detection_mask", "prediction_mask", *keys}
     if unknown:
         raise ValueError(f"action has unknown keys {sorted(unknown)}")
@@ -237,8 +317,10 @@ def parse_action(action, n_heads: int) -> dict:
         valid = bool(flag)
     if "attitude" in action:
         q = _array(action, "attitude", (4,), "f")
+        scale = float(np.max(np.abs(q)))
+        q = q / scale if scale > 0 else q  # so the norm cannot overflow (a quaternion's scale carries no meaning)
         norm = float(np.linalg.norm(q))
-        if valid and norm < 1e-6:
+        if valid and scale < 1e-6:
             raise ValueError("action['attitude'] must be a quaternion [x, y, z, w] of non-zero norm (it is normalised)")
         out["attitude"] = q / norm if valid else None
     for list_key, mask_key, xy_key, id_key in (
@@ -254,10 +336,16 @@ def parse_action(action, n_heads: int) -> dict:
             raise ValueError(f"action[{mask_key!r}] must hold 0 or 1")
         xy = _array(action, xy_key, (n_heads, MAX_STARS, 2), "f") if xy_key in action else None
         ids = _array(action, id_key, (n_heads, MAX_STARS), "i") if id_key in action else None
+        corrected = None
+        if xy_key == "detections_xy" and "corrected_xy" in action:
+            corrected = _array(action, "corrected_xy", (n_heads, MAX_STARS, 2), "f")
         for h in range(n_heads):
             rows = mask[h].astype(bool)
             out[xy_key][h] = None if xy is None else xy[h, rows]
             out[id_key][h] = None if ids is None else ids[h, rows]
+            if corrected is not None:
+                out["corrected_xy"][h] = corrected[h, rows]
     if out["detections_xy"][0] is None:
         out["catalog_ids"] = [None] * n_heads  # ids are scored through their detections
+        out["corrected_xy"] = [None] * n_heads
     return out

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from starenv.scenario import bundled_names
+from starenv.scenario import bundled_names, load
 
 ENTRY_POINT = "starenv.env:StarSensorEnv"
 
@@ -15,12 +15,14 @@ def env_id(scenario_name: str) -> str:
 
 
 def register_envs() -> list[str]:
-    """Register every bundled scenario and ``StarEnv/Scenario-v0``; returns the ids."""
+    """Register every bundled scenario (with ``max_episode_steps``: the steps until the env truncates) and
+    ``StarEnv/Scenario-v0`` (whose length depends on its scenario: the env truncates it itself); returns the ids."""
     ids = []
     for name in bundled_names():
         ids.append(env_id(name))
         if ids[-1] not in gym.registry:
-            gym.register(ids[-1], entry_point=ENTRY_POINT, kwargs={"scenario": name}, disable_env_checker=False)
+            gym.register(ids[-1], entry_point=ENTRY_POINT, kwargs={"scenario": name}, disable_env_checker=False,
+                         max_episode_steps=load(name).n_steps - 1)
     if "StarEnv/Scenario-v0" not in gym.registry:
         gym.register("StarEnv/Scenario-v0", entry_point=ENTRY_POINT)
     ids.append("StarEnv/Scenario-v0")

@@ -3,9 +3,14 @@
 Every key carries its unit in its name (``exposure_s``, ``rate_dps``, ``arw_deg_rthr``).  Loading checks every key:
 an unknown key, a wrong type, a missing field or an out-of-range value raises one :class:`ScenarioError` naming the
 file, the dotted key path and the expected form.  ``overrides`` (dotted key paths, list items by index, e.g.
-``{"motion.rate_dps": [0, 0, 10], "heads.0.width": 256}``) are applied to the file's contents before validation.
+``{"motion.rate_dps": [0, 0, 10], "heads.0.width": 256}``) are applied to the file's contents before validation;
+an override to ``None`` is refused like any other wrong type.  What drives memory and time is bounded at load, with
+the limit in the message (``MAX_TRAIL_PX``, ``MAX_FRAME_PIXELS``, ``MAX_EPISODE_PIXELS``, ``MAX_STAR_INSTANTS``,
+``MAX_GYRO_PER_STEP``, at least two frames), so a run that would not fit fails before it allocates.  A scenario is
+data: the only code it can name is an agent class in ``[pipeline]``, loaded under the rules of
+``starenv.agents.pipeline.load_agent``.
 
-Layout (see the bundled files in ``scenarios/`` for complete, commented examples)::
+Layout (see the bundled files in ``starenv/data/scenarios/`` for complete, commented examples)::
 
     name, description, seed, duration_s, frame_rate_hz, exposure_s, mag_limit, epoch,
     sky_mag_per_arcsec2, lost_after_steps, availability_threshold_arcsec
@@ -24,7 +29,9 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -56,21 +63,55 @@ from starenv.sim.motion import (
     TorqueFree,
     Trajectory,
 )
-from starenv.sim.optics import BrownConrady, Camera, Distortion, LegendreField, NoDistortion, RadialXY
+from starenv.sim.optics import (
+    SEED003_PRESETS,
+    BrownConrady,
+    Camera,
+    Composite,
+    Distortion,
+    LegendreField,
+    NoDistortion,
+    Perspective,
+    Radial,
+    RadialXY,
+    Shear,
+    Tangential,
+    ThinPrism,
+)
 from starenv.sim.photometry import Photometry, StrayLight
 from starenv.sim.sensor import HeadSpec
 
-SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+SCENARIO_DIR = Path(str(resources.files("starenv").joinpath("data", "scenarios")))  # package data
 
 
 class ScenarioError(ConfigError):
     """A scenario file (or override) that does not describe a valid mission."""
 
 
-DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre")
+# Bounds on what one scenario may ask of the simulator, checked at load (before anything is allocated).
+MAX_TRAIL_PX = 1024.0  # longest star trail in one exposure (render time and memory grow with its square)
+MAX_FRAME_PIXELS = 2**25  # pixels of one step's frames, all heads (~12 bytes each while a frame is made)
+MAX_EPISODE_PIXELS = 10**12  # frames x pixels per frame over an episode (render time)
+MAX_STAR_INSTANTS = 2**23  # stars that may cross a frame x exposure instants (the renderer's path arrays)
+MAX_GYRO_PER_STEP = 2**18  # gyro samples one observation holds (the env's fixed gyro layout, 32 bytes each)
+# Hipparcos-2 stars with Hp <= m for m = -2 .. 14 (counted from the bundled catalogue), to bound stars in view.
+HIP_COUNT_AT_MAG = (0, 1, 2, 15, 46, 165, 480, 1471, 4559, 13943, 37622, 78352, 106261, 114825, 117325, 117915,
+                    117953)
+# Stars in one cone <= GALACTIC_EXCESS x the sky's mean + CLUSTER_STARS.  Measured on the bundled catalogue (densest
+# of 3000 random cones, radius 2-20 deg): <= 2.6x the mean at Hp <= 12, <= 3.0x at Hp <= 9; bright cones reach 8x the
+# mean (clusters) but then hold a few tens of stars.
+GALACTIC_EXCESS = 3.0
+CLUSTER_STARS = 30
+
+DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre", "radial", "tangential", "thin_prism", "shear",
+                    "perspective", "seed003", "composite")
 
 
 def _distortion(tbl: Table | None) -> Distortion:
+    """A ``[heads.distortion]`` table.  Seed 003's types (``radial`` q1, q2; ``tangential`` p1, p2; ``thin_prism``
+    s1, s2; ``shear`` phi_x_deg, phi_y_deg; ``perspective`` h = [h11, h12, h13, h21, h22, h23, h31, h32]) take
+    normalised coefficients (focal plane over half the sensor width); ``seed003`` takes ``preset`` = one of
+    :data:`~starenv.sim.optics.SEED003_PRESETS`; ``composite`` applies its ``[[models]]`` tables in turn."""
     if tbl is None:
         return NoDistortion()
     kind = tbl.string("kind", choices=DISTORTION_KINDS)
@@ -82,9 +123,24 @@ def _distortion(tbl: Table | None) -> Distortion:
     elif kind == "radial_xy":
         kx, ky = tbl.number("kx_per_px2", 0.0), tbl.number("ky_per_px2", 0.0)
         model = tbl.build("distortion", RadialXY, kx=kx, ky=ky, center=tbl.vector("center_px", 2, None))
-    else:
+    elif kind == "legendre":
         cx, cy = tbl.vector("coeffs_x_px", None), tbl.vector("coeffs_y_px", None)
         model = tbl.build("distortion", LegendreField, coeffs_x=cx, coeffs_y=cy)
+    elif kind in ("radial", "tangential", "thin_prism"):
+        cls, names = {"radial": (Radial, ("q1", "q2")), "tangential": (Tangential, ("p1", "p2")),
+                      "thin_prism": (ThinPrism, ("s1", "s2"))}[kind]
+        model = tbl.build("distortion", cls, **{k: tbl.number(k, 0.0) for k in names})
+    elif kind == "shear":
+        phi = [tbl.number(k, 0.0, low=-44.9, high=44.9) * DEG
+               for k in ("phi_x_deg", "phi_y_deg")]
+        model = tbl.build("distortion", Shear, *phi)
+    elif kind == "perspective":
+        model = tbl.build("distortion", Perspective, tuple(tbl.vector("h", 8)))
+    elif kind == "seed003":
+        model = SEED003_PRESETS[tbl.string("preset", choices=tuple(SEED003_PRESETS))]
+    else:
+        models = [_distortion(t) for t in tbl.tables("models")]
+        model = tbl.build("distortion", Composite, tuple(models))
     tbl.finish()
     return model
 
@@ -152,6 +208,7 @@ def _calibration(tbl: Table | None, camera: Camera) -> Camera:
     return tbl.build("calibration", dataclasses.replace, camera, **changes)
 
 
+MAX_INERTIA_KGM2 = 1e12  # far above any spacecraft; keeps Euler's equations in floating-point range
 MOTION_KINDS = ("constant_rate", "slew", "tumble", "coning", "leo_nadir", "sequence")
 
 
@@ -183,8 +240,9 @@ def _motion_kind(tbl: Table, kind: str, head0: Camera, initial: Rotation | None)
         rows = inertia if isinstance(inertia, list) and all(isinstance(r, list) for r in inertia) else [inertia]
         ok = all(isinstance(r, list) and r and all(is_number(x) for x in r) for r in rows)
         arr = np.array(inertia, dtype=np.float64) if ok and len({len(r) for r in rows}) == 1 else None
-        if arr is None or arr.shape not in ((3,), (3, 3)):
-            tbl.fail("inertia_kgm2", "3 principal moments or a 3x3 tensor, kg m^2", inertia)
+        if arr is None or arr.shape not in ((3,), (3, 3)) or not np.all(np.abs(arr) <= MAX_INERTIA_KGM2):
+            tbl.fail("inertia_kgm2", f"3 principal moments or a 3x3 tensor, kg m^2, each |value| <= "
+                                     f"{MAX_INERTIA_KGM2:g}", inertia)
         tensor = np.diag(arr) if arr.shape == (3,) else arr
         rate = np.array(tbl.vector("rate_dps", 3)) * DEG
         return tbl.build("motion", TorqueFree, tensor, rate)
@@ -283,6 +341,47 @@ def parse_pipeline(tbl: Table | None) -> PipelineSpec:
     return PipelineSpec(agents, options, limit)
 
 
+def _check_bounds(source: str, duration: float, frame_rate: float, exposure: float, mag_limit: float,
+                  heads: list[HeadSpec], trajectory: Trajectory, gyro: GyroSpec) -> None:
+    """Refuse a scenario whose frames, trails or episode would need more memory or time than the bounds allow."""
+    per_step = math.ceil(gyro.rate_hz / frame_rate) + 1
+    if per_step > MAX_GYRO_PER_STEP:
+        raise ScenarioError(f"{source}: frame_rate_hz: expected at most {MAX_GYRO_PER_STEP} gyro samples per frame "
+                            f"(frame_rate_hz >= {gyro.rate_hz / (MAX_GYRO_PER_STEP - 2):.3g} at gyro.rate_hz = "
+                            f"{gyro.rate_hz:g}), got {per_step}")
+    pixels = sum(h.camera.width * h.camera.height for h in heads)
+    if pixels > MAX_FRAME_PIXELS:
+        raise ScenarioError(f"{source}: heads: expected at most {MAX_FRAME_PIXELS} pixels per step over all heads "
+                            f"(e.g. two 4096 x 4096 heads), got {pixels}")
+    steps = math.floor(duration * frame_rate + 1e-9)
+    if steps < 2:
+        raise ScenarioError(f"{source}: duration_s: expected at least two frame periods "
+                            f"(>= {2.0 / frame_rate:g} s: a step scores frame k while frame k + 1 is made), "
+                            f"got {duration:g} s")
+    if steps * pixels > MAX_EPISODE_PIXELS:
+        raise ScenarioError(f"{source}: duration_s: expected frames x pixels per frame <= {MAX_EPISODE_PIXELS:.0e} "
+                            f"(render time), got {steps} frames x {pixels} px = {steps * pixels:.3g}")
+    rate = trajectory.motion.max_rate(0.0, duration)
+    n_mag = HIP_COUNT_AT_MAG[min(len(HIP_COUNT_AT_MAG) - 1, max(0, math.ceil(mag_limit) + 2))]
+    for i, h in enumerate(heads):
+        cam = h.camera
+        window = exposure + h.detector.line_time_s * (cam.height - 1)
+        px_per_rad = max(cam.fx, cam.fy) * (1.0 + math.tan(cam.half_diagonal) ** 2)  # the renderer's bound
+        trail = rate * window * px_per_rad
+        if not trail <= MAX_TRAIL_PX:
+            raise ScenarioError(
+                f"{source}: motion: expected star trails of at most {MAX_TRAIL_PX:g} px in one exposure, got "
+                f"{trail:.4g} px on heads.{i} (body rate up to {math.degrees(rate):.4g} deg/s x {window:g} s x "
+                f"{px_per_rad:.4g} px/rad): lower the rate, the exposure or the focal length")
+        instants = max(1, math.ceil(trail / min(cam.psf_sigma_px, 0.5)))
+        cone = min(math.pi, cam.half_diagonal + rate * window + 0.01)
+        stars = math.ceil(GALACTIC_EXCESS * n_mag * 0.5 * (1.0 - math.cos(cone))) + CLUSTER_STARS
+        if stars * instants > MAX_STAR_INSTANTS:
+            raise ScenarioError(
+                f"{source}: mag_limit: expected stars in view x render instants <= {MAX_STAR_INSTANTS}, got up to "
+                f"{stars} stars x {instants} instants on heads.{i}: lower mag_limit, the field or the trail length")
+
+
 @dataclass
 class Scenario:
     """A validated mission: timing, motion, gyro, drops and camera heads, plus its source for reproduction."""
@@ -341,6 +440,9 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
     """Load, override and validate a scenario (bundled name, path, or an already-parsed TOML dict)."""
     if isinstance(scenario, dict):
         source, data = "<scenario>", copy.deepcopy(scenario)
+    elif not isinstance(scenario, str | os.PathLike):
+        raise ScenarioError(f"scenario: expected a bundled scenario name, a .toml path or a parsed scenario dict, "
+                            f"got {type(scenario).__name__} {scenario!r}")
     else:
         path = resolve(scenario)
         source = str(path)
@@ -380,6 +482,7 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
     drops = dataclass_from_table(top.table("drops"), DropModel)
     pipeline = parse_pipeline(top.table("pipeline"))
     top.finish()
+    _check_bounds(source, duration, frame_rate, exposure, mag_limit, heads, trajectory, gyro)
     return Scenario(
         name, description, seed, duration, frame_rate, exposure, mag_limit, epoch, sky, lost_after, avail,
         trajectory, gyro, drops, heads, pipeline, source, data,

@@ -12,6 +12,11 @@ Star-level metrics use the truth of one head's frame:
 * identification: a claimed catalog id is correct when the star with that id lies within ``gate_px`` of its detection
   (so either member of an unresolved double counts for the blended spot).  ID rate = correct / detectable stars;
   false-ID rate = wrong ids / claimed ids; the frame is solved when >= 3 ids are correct and none is wrong.
+* correction: for each detection with a correct id, the corrector's offset (measured - corrected) against the true
+  offset of its star (``xy_centroid`` minus where the calibrated camera images the star's true direction,
+  :func:`calibrated_positions`); the difference is the distortion left after correction, free of centroid noise
+  (Euclidean mean, and mean |error| per axis, px); ``distortion_px_mean`` is the true offset's mean length on the
+  same stars (what an absent corrector leaves).
 * prediction: predicted positions (catalog id, x, y) against the true mid-exposure position ``xy_mid`` of the same
   star; counted on dropped frames too (truth exists for every frame).
 """
@@ -25,6 +30,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
 from starenv.sim.conventions import ARCSEC_PER_RAD
+from starenv.sim.optics import Camera
 from starenv.sim.render import StarTruth
 
 CENTROID_GATE_PX = 3.0
@@ -73,6 +79,10 @@ class StarScores:
     ids_correct: int = 0
     ids_wrong: int = 0
     solved: bool = False
+    correction_error_px_mean: float | None = None
+    correction_error_x_px: float | None = None
+    correction_error_y_px: float | None = None
+    distortion_px_mean: float | None = None
     prediction_error_px_mean: float | None = None
     prediction_error_px_max: float | None = None
     predictions_scored: int = 0
@@ -84,9 +94,13 @@ def score_stars(
     claimed_ids: np.ndarray | None = None,
     predicted_ids: np.ndarray | None = None,
     predicted_xy: np.ndarray | None = None,
+    corrected_xy: np.ndarray | None = None,
+    calibrated_xy: np.ndarray | None = None,
     gate_px: float = CENTROID_GATE_PX,
 ) -> StarScores:
-    """Score one head's detections (n, 2) px, their claimed catalog ids (n,; -1 = none) and predictions."""
+    """Score one head's detections (n, 2) px, their claimed catalog ids (n,; -1 = none), their corrected positions
+    (n, 2) px against the true stars' positions in the calibrated camera (``calibrated_xy``, one per true star), and
+    predictions."""
     s = StarScores()
     detectable = truth.detectable
     n_detectable = int(detectable.sum())
@@ -114,6 +128,12 @@ def score_stars(
             if claimed.any():
                 s.false_id_rate = s.ids_wrong / int(claimed.sum())
             s.solved = s.ids_correct >= SOLVED_MIN_CORRECT and s.ids_wrong == 0
+            if corrected_xy is not None and calibrated_xy is not None and correct.any():
+                true_offset = truth.xy_centroid[star[correct]] - calibrated_xy[star[correct]]
+                err = (detected_xy[correct] - corrected_xy[correct]) - true_offset
+                s.correction_error_px_mean = float(np.linalg.norm(err, axis=1).mean())
+                s.correction_error_x_px, s.correction_error_y_px = (float(v) for v in np.abs(err).mean(axis=0))
+                s.distortion_px_mean = float(np.linalg.norm(true_offset, axis=1).mean())
     if predicted_ids is not None and predicted_xy is not None and len(predicted_ids):
         lookup = {int(h): i for i, h in enumerate(truth.catalog_id)}
         pairs = [(j, lookup[int(h)]) for j, h in enumerate(predicted_ids) if int(h) in lookup]
@@ -124,6 +144,14 @@ def score_stars(
             s.prediction_error_px_max = float(err.max())
             s.predictions_scored = len(pairs)
     return s
+
+
+def calibrated_positions(xy: np.ndarray, camera: Camera, calibrated: Camera) -> np.ndarray:
+    """Where the ``calibrated`` camera images the directions that the true ``camera`` images at ``xy`` (n, 2) px."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if camera == calibrated or not len(xy):
+        return xy.copy()
+    return calibrated.project(camera.unproject(xy))[0]
 
 
 def flatten(scores: dict, latency_s: dict[str, float] | None = None) -> dict[str, float | None]:
@@ -143,6 +171,7 @@ def flatten(scores: dict, latency_s: dict[str, float] | None = None) -> dict[str
     }
     heads = scores["heads"]
     for key in ("centroid_error_px_mean", "detection_recall", "detection_precision", "id_rate", "false_id_rate",
+                "correction_error_px_mean", "correction_error_x_px", "correction_error_y_px", "distortion_px_mean",
                 "prediction_error_px_mean", "prediction_error_px_max"):
         values = [h[key] for h in heads if h[key] is not None]
         rec[key] = float(np.mean(values)) if values else None

@@ -22,6 +22,7 @@ from starenv.bench.spec import BENCH_DIR, BenchError, Sweep, load_bench, parse_b
 from starenv.cli import main
 from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
+from starenv.scenario import SCENARIO_DIR
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -104,7 +105,7 @@ def test_identity_hash_changes_with_every_input_and_only_then(tmp_path):
     steps = parse_bench(SMALL.replace("steps = 3", "steps = 4")).runs
     rates = parse_bench(SMALL.replace("values = [0, 4]", "values = [0, 5]")).runs
     copy = tmp_path / "paper_000.toml"
-    copy.write_text((ROOT / "scenarios" / "paper_000.toml").read_text() + "\n# an edited copy\n")
+    copy.write_text((SCENARIO_DIR / "paper_000.toml").read_text() + "\n# an edited copy\n")
     edited = parse_bench(SMALL.replace('"paper_000"', f'"{copy}"')).runs
     digests = [{r.digest for r in runs} for runs in (base, seeds, steps, rates, edited)]
     assert all(len(d) == 4 for d in digests)
@@ -162,7 +163,7 @@ BAD = {
     "sweep with both forms": (SMALL.replace("values = [0, 4]", "values = [0, 4], start = 0"), "runs.0.sweep.values"),
     "bad seeds": (SMALL.replace("seeds = [0]", "seeds = [-1]"), "seeds: expected a non-empty list of integers >= 0"),
     "no runs": ("name = 'x'\n", "runs: expected a non-empty array of tables"),
-    "bad recordings": ("recordings = 'yes'\n" + SMALL, "recordings: expected true, false or 'module:Callable'"),
+    "bad recordings": ("recordings = 'yes'\n" + SMALL, "recordings: expected true or false, got 'yes'"),
     "bad group recordings": (SMALL + "recordings = 'no'\n", "runs.0.recordings: expected true or false"),
     "preset name redefined": (SMALL + '[pipelines.scenario]\nsolver = "a:B"\n', "built-in preset name"),
 }
@@ -288,48 +289,18 @@ def test_a_file_with_another_identity_is_not_reused(tmp_path):
     assert read_run(files[0])[0]["digest"] == bench.runs[0].digest
 
 
-OBSERVER = '''
-import json
-
-
-class StepCounter:
-    """Writes one line per scored step (frame index, attitude error) to the recording path."""
-
-    def __init__(self, path):
-        self.path, self.lines = path, []
-
-    def start(self, env, seed, pipeline):
-        self.lines.append(json.dumps({"seed": seed, "scenario": env.unwrapped.scenario.name}))
-
-    def step(self, log):
-        self.lines.append(json.dumps({"frame": log.record["frame"], "err": log.record["attitude_error_arcsec"]}))
-
-    def close(self, error=None):
-        with open(self.path, "w") as f:
-            f.write("\\n".join(self.lines) + "\\n")
-'''
-
-
-def test_observer_factory_records_each_run_to_its_own_file(tmp_path, monkeypatch):
-    (tmp_path / "bench_observer_probe.py").write_text(OBSERVER)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    bench = parse_bench('recordings = "bench_observer_probe:StepCounter"\n' + SMALL)
-    assert bench.recorder == "bench_observer_probe:StepCounter"
+def test_recordings_are_rerun_when_missing_and_skipped_per_group(tmp_path):
+    bench = parse_bench("recordings = true\n" + SMALL)
     out = tmp_path / "out"
-    files = run_bench(bench, out, jobs=1, progress=False, log=_quiet)
-    for run, path in zip(bench.runs, files, strict=True):
-        rec = out / "recordings" / f"{run.run_id}.mcap"
-        lines = [json.loads(x) for x in rec.read_text().splitlines()]
-        assert lines[0] == {"seed": 0, "scenario": "paper_000"}
-        steps = read_run(path)[1]
-        assert [(x["frame"], x["err"]) for x in lines[1:]] == [(s["frame"], s["attitude_error_arcsec"]) for s in steps]
+    run_bench(bench, out, jobs=1, progress=False, log=_quiet)
+    assert sorted(p.stem for p in (out / "recordings").glob("*.mcap")) == sorted(r.run_id for r in bench.runs)
     # a run whose recording is missing is run again
     (out / "recordings" / f"{bench.runs[0].run_id}.mcap").unlink()
     lines = []
     run_bench(bench, out, jobs=1, progress=False, log=lines.append)
     assert lines[-1] == "ran 1 run(s), reused 3"
     # a group with recordings = false runs unrecorded, and its missing recordings do not make it run again
-    quiet = parse_bench('recordings = "bench_observer_probe:StepCounter"\n' + SMALL + "recordings = false\n")
+    quiet = parse_bench("recordings = true\n" + SMALL + "recordings = false\n")
     assert [r.digest for r in quiet.runs] == [r.digest for r in bench.runs]  # recording is not part of a run
     out2 = tmp_path / "out2"
     run_bench(quiet, out2, jobs=1, progress=False, log=_quiet)

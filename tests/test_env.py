@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 import starenv
 from starenv.env import MAX_STARS, StarSensorEnv
 from starenv.registration import register_envs
+from starenv.scenario import SCENARIO_DIR
 from starenv.sim.conventions import ARCSEC
 
 SMALL = {"heads.0.width": 128, "heads.0.height": 128}  # paper_000 on a 128 px crop: fast
@@ -59,7 +60,7 @@ def test_check_env_passes_without_warnings(env_id):
 def test_design_contract_snippet():
     env = gym.make(
         "StarEnv/Scenario-v0",
-        scenario="scenarios/paper_002.toml",
+        scenario=str(SCENARIO_DIR / "paper_002.toml"),
         overrides={"motion.kind": "constant_rate", "motion.rate_dps": [0, 0, 10], "motion.initial_ra_deg": 83.8,
                    "motion.initial_dec_deg": -5.4, "motion.initial_roll_deg": 0.0},
     )

@@ -109,4 +109,6 @@ def test_cli_runs_a_pipeline_with_a_replaced_agent(capsys):
     out = capsys.readouterr().out
     assert "solver=starenv.agents.solve:SvdSolver" in out and "availability" in out and "latency_solver_ms" in out
     assert main(["run", "paper_000", "--steps", "2", "--agent", "solver=nowhere:Nothing"]) == 2
+    assert "module 'nowhere' is outside starenv and not trusted" in capsys.readouterr().err
+    assert main(["run", "paper_000", "--steps", "2", "--agent", "solver=nowhere:Nothing", "--trust", "nowhere"]) == 2
     assert "cannot load agent" in capsys.readouterr().err

@@ -10,6 +10,7 @@ import sys
 import time
 import tomllib
 from collections import Counter
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,8 @@ OVERRIDES = {"drops.probability": 0.3}  # paper_004 with frequent drops, so drop
 STEPS = 5
 SEED = 2
 RERUN = shutil.which("rerun")
+# paper_004's epoch, 2026.0 (a Julian year), as Unix ns: J2000.0 + 26 x 365.25 days = 2026-01-01T00:00:00
+ORIGIN_NS = int(datetime(2026, 1, 1, tzinfo=UTC).timestamp()) * 10**9
 needs_rerun_cli = pytest.mark.skipif(RERUN is None, reason="the rerun CLI (rerun-sdk) is not installed")
 
 
@@ -99,6 +102,7 @@ def test_mcap_reads_back_with_expected_counts_and_valid_crcs(run):
         expected[f"/head{h}/image"] = int(valid[:, h].sum())
         for layer in ("truth", "detections", "predictions"):
             expected[f"/head{h}/{layer}"] = STEPS
+        expected[f"/head{h}/calibration"] = expected[f"/head{h}/mounting"] = STEPS
     expected["/log"] = int((~valid).sum()) + no_solution
     with open(path, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
@@ -110,8 +114,9 @@ def test_mcap_reads_back_with_expected_counts_and_valid_crcs(run):
         assert dict(seen) == expected
         times = [m.log_time for _, _, m in reader.iter_messages(log_time_order=False)]
     assert times == sorted(times)
-    # log times are the frames' mid-exposure simulation times: 10 Hz, exposure 0.05 s -> k * 0.1 s + 0.025 s
-    assert sorted(set(times)) == [int(round((k * 0.1 + 0.025) * 1e9)) for k in range(STEPS)]
+    # log times are the frames' mid-exposure simulation times (10 Hz, exposure 0.05 s -> k * 0.1 s + 0.025 s) on the
+    # scenario's epoch
+    assert sorted(set(times)) == [ORIGIN_NS + int(round((k * 0.1 + 0.025) * 1e9)) for k in range(STEPS)]
 
 
 def test_a_corrupted_chunk_fails_the_crc_check(run, tmp_path):
@@ -228,7 +233,7 @@ def test_rerun_mcap_check_passes(run):
     out = rerun_cli("mcap", "check", run[0] / "run.mcap")
     assert out.returncode == 0, out.stderr
     rows = [line.split() for line in out.stdout.splitlines() if line.strip().startswith(("ok", "warn", "error"))]
-    assert len(rows) == 17 and all(r[0] == "ok" for r in rows), out.stdout
+    assert len(rows) == 23 and all(r[0] == "ok" for r in rows), out.stdout  # 6 topics per head + 5 others
 
 
 @needs_rerun_cli
@@ -248,7 +253,8 @@ def test_rerun_imports_the_images_from_the_mcap(run, tmp_path):
                                    strict=True):
                 assert (fmt[0]["width"], fmt[0]["height"]) == (512, 512)
                 images[chunk.entity_path, t] = np.asarray(buf.values[0].values).tobytes()
-    expected = {(f"/head{h}/image", int(round(log.truth["time_s"] * 1e9))): log.obs["frames"][h].astype("<u2").tobytes()
+    expected = {(f"/head{h}/image", ORIGIN_NS + int(round(log.truth["time_s"] * 1e9))):
+                log.obs["frames"][h].astype("<u2").tobytes()
                 for log in logs for h in range(3) if log.obs["frame_valid"][h]}
     assert images.keys() == expected.keys()
     assert all(images[k] == expected[k] for k in expected)
@@ -413,7 +419,7 @@ def test_an_exception_mid_run_leaves_a_closed_recording_with_the_failure_logged(
         reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
         logs = [(m.log_time, d) for _, _, m, d in reader.iter_decoded_messages(topics=["/log"])]
     assert logs[-1][1].level == 4 and "RuntimeError: detector exploded" in logs[-1][1].message
-    assert logs[-1][0] == int(round((3 * 0.1 + 0.025) * 1e9))  # stamped with the frame that failed
+    assert logs[-1][0] == ORIGIN_NS + int(round((3 * 0.1 + 0.025) * 1e9))  # stamped with the frame that failed
     steps = list(read_steps(path))
     assert [s.frame for s in steps] == [0, 1, 2, 3] and steps[-1].logs[-1][1].startswith("frame 3: run stopped")
     meta = read_metadata(path)["starenv.outcome"]
@@ -424,7 +430,7 @@ def test_an_exception_mid_run_leaves_a_closed_recording_with_the_failure_logged(
 def test_a_writer_failure_reaches_the_episode(tmp_path, monkeypatch):
     import starenv.record.mcap as mcap_mod
 
-    def broken(data):
+    def broken(data, origin_ns=0):
         raise OSError("disk full")
 
     monkeypatch.setattr(mcap_mod, "encode_step", broken)
@@ -448,3 +454,82 @@ def test_bad_input_gets_a_clear_error(tmp_path, capsys):
     (tmp_path / "text.mcap").write_text("hello")
     assert cli.main(["view", str(tmp_path / "text.mcap")]) == 2
     assert "not an MCAP file" in capsys.readouterr().err
+
+
+def test_foxglove_cameras_place_every_true_star(run):
+    """Chaining the recorded transforms icrs <- body <- head{h} and the recorded CameraCalibration takes each true
+    star's catalog direction to its recorded truth point (paper_004: three heads, no distortion, exact calibration),
+    read with the plain mcap reader and the protobuf decoder only."""
+    tmp, logs = run
+    env = StarSensorEnv("paper_004", OVERRIDES)
+    catalog = env.sensor.catalog
+    by_time: dict[int, dict[str, object]] = {}
+    with open(tmp / "run.mcap", "rb") as f:
+        for _, channel, message, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            by_time.setdefault(message.log_time, {})[channel.topic] = msg
+    assert len(by_time) == STEPS
+    row = {int(h): i for i, h in enumerate(catalog.hip)}
+    for (t, msgs), log in zip(sorted(by_time.items()), logs, strict=True):
+        assert t == ORIGIN_NS + int(round(log.truth["time_s"] * 1e9))
+        body = msgs["/attitude/true"]
+        r_icrs_body = Rotation.from_quat([body.rotation.x, body.rotation.y, body.rotation.z, body.rotation.w])
+        for h, head in enumerate(env.scenario.heads):
+            cal, tf = msgs[f"/head{h}/calibration"], msgs[f"/head{h}/mounting"]
+            assert (cal.frame_id, tf.parent_frame_id, tf.child_frame_id) == (f"head{h}", "body", f"head{h}")
+            assert (cal.width, cal.height, cal.distortion_model, list(cal.D)) == (512, 512, "", [])
+            assert cal.timestamp.seconds * 10**9 + cal.timestamp.nanos == t
+            r_body_head = Rotation.from_quat([tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w])
+            k = np.array(cal.K).reshape(3, 3)
+            stars = log.truth["stars"][h]
+            units = catalog.unit[[row[int(i)] for i in stars["catalog_id"]]]
+            v = (r_icrs_body * r_body_head).inv().apply(units)  # head frame
+            uv = (k @ v.T).T
+            xy_foxglove = uv[:, :2] / uv[:, 2:]
+            assert len(xy_foxglove) > 0
+            # the truth point is the trail centroid; at mid-exposure the star sits at xy_mid (+0.5 px origin)
+            np.testing.assert_allclose(xy_foxglove, np.asarray(stars["xy_mid"]) + 0.5, atol=1e-6)
+            assert head.calibrated.fx == k[0, 0]
+
+
+def test_rerun_review_holds_the_attitude_view_and_gyro_series(run):
+    """The live .rrd's 3-D arrows are the true body axes and head boresights written in ICRS (an independent
+    composition: attitude^-1 applied to the body axes and to mounting^-1 z), its true stars sit on their catalog
+    directions, and every gyro sample is a point of
+    the gyro series at its own simulation time, in deg/s."""
+    import rerun as rr
+
+    tmp, logs = run
+    env = StarSensorEnv("paper_004", OVERRIDES)
+    arrows, gyro, sky = [], {}, []
+    for chunk in rr.chunk.RrdReader(tmp / "live.rrd").stream().to_chunks():
+        batch = chunk.to_record_batch()
+        if chunk.entity_path == "/attitude/true":
+            arrows += [np.array(v.as_py()) for v in batch.column("Arrows3D:vectors")]
+        elif chunk.entity_path == "/attitude/stars/truth":
+            sky += [(np.array(v.as_py()).reshape(-1, 3), labels.as_py()) for v, labels in
+                    zip(batch.column("Points3D:positions"), batch.column("Points3D:labels"), strict=True)]
+        elif chunk.entity_path.startswith("/gyro/rate_dps/"):
+            axis = chunk.entity_path[-1]
+            for t, v in zip(batch.column("sim_time").cast("int64").to_pylist(), batch.column("Scalars:scalars"),
+                            strict=True):
+                gyro[axis, t] = v.as_py()[0]
+    assert len(arrows) == STEPS
+    for vectors, log in zip(arrows, logs, strict=True):
+        to_icrs = Rotation.from_quat(log.truth["attitude"]).inv()
+        bores = [to_icrs.apply(h.calibrated.mounting.inv().apply([0, 0, 1])) for h in env.scenario.heads]
+        np.testing.assert_allclose(vectors, np.vstack([to_icrs.apply(np.eye(3)), bores]), atol=1e-6)
+    # the true stars on the sky: their catalog directions, to within the trail centroid's offset from the
+    # mid-exposure position (a slow drift: well under 1 px = 42 arcsec = 2e-4 rad)
+    catalog = env.sensor.catalog
+    row = {int(h): i for i, h in enumerate(catalog.hip)}
+    assert len(sky) == STEPS
+    for (points, labels), log in zip(sky, logs, strict=True):
+        hips = [int(lab.removeprefix("HIP ")) for lab in labels]
+        assert hips == [int(i) for h in range(3) for i in log.truth["stars"][h]["catalog_id"]] and hips
+        np.testing.assert_allclose(points, catalog.unit[[row[i] for i in hips]], atol=2e-4)
+    samples = [(t, r) for log in logs for t, r in zip(log.obs["gyro"]["t"][: int(log.obs["gyro"]["count"])],
+                                                      log.obs["gyro"]["rate"], strict=False)]
+    assert len(gyro) == 3 * len(samples)
+    for t, rate in samples:
+        t_ns = int(round(t * 1e9))
+        np.testing.assert_allclose([gyro[a, t_ns] for a in "xyz"], np.degrees(rate), rtol=1e-12)

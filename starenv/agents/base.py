@@ -119,12 +119,20 @@ class StarDetector(Protocol):
 
 @runtime_checkable
 class DistortionCorrector(Protocol):
-    """Maps measured pixel positions to the calibrated camera's distorted positions (learning on the way)."""
+    """Maps measured pixel positions to the positions the calibrated camera would give the same directions (learning
+    on the way), and back: ``uncorrect`` is the inverse of ``correct`` (calibrated -> measured), which puts predicted
+    stars where they will be measured."""
+
+    def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None: ...
 
     def correct(self, stars: StarMeasurements, head: int, camera: Camera) -> StarMeasurements: ...
 
+    def uncorrect(self, stars: StarMeasurements, head: int, camera: Camera) -> StarMeasurements: ...
+
     def learn(self, stars: StarMeasurements, head: int, camera: Camera, attitude: Rotation,
-              catalog: StarCatalog) -> None: ...
+              catalog: StarCatalog) -> None:
+        """Update from one head's identified stars (corrected positions, catalogue ids) and the solved attitude."""
+        ...
 
 
 @runtime_checkable

@@ -93,6 +93,7 @@ ACCURACY = (
     ("roll median / p95 (arcsec)", ("roll_error_arcsec_median", "roll_error_arcsec_p95")),
     ("centroid median / p95 (px)", ("centroid_error_px_mean_median", "centroid_error_px_mean_p95")),
     ("prediction median / p95 (px)", ("prediction_error_px_mean_median", "prediction_error_px_mean_p95")),
+    ("distortion left median / p95 (px)", ("correction_error_px_mean_median", "correction_error_px_mean_p95")),
 )
 RESTORATION = (
     ("centroid blurred (px)", "restoration_centroid_error_blurred_px"),
@@ -144,6 +145,63 @@ def markdown_tables(rows: list[dict]) -> str:
             + "\n## Latency per agent role, median / p95 (ms)\n\n" + "\n".join(lat) + "\n")
 
 
+DODGE_MARKERS = ("o", "s", "^", "D", "v", "P")
+WORKING_AVAILABILITY = 0.9  # a swept value "works" for a pipeline when its availability reaches this
+
+
+def _rank(r: dict) -> tuple:
+    """Sort key of a case, best first: higher availability, then lower median attitude error, then lower latency."""
+    def num(v, missing):
+        return missing if v is None or v == "" else float(v)
+    return (-num(r.get("within_threshold"), 0.0), num(r.get("attitude_error_arcsec_median"), math.inf),
+            num(r.get("latency_pipeline_ms_median"), math.inf))
+
+
+def working_limit(rows: list[dict]) -> float | None:
+    """Largest swept value up to which (from the smallest swept value on) every value reaches
+    ``WORKING_AVAILABILITY``; None when the smallest already fails.  ``rows``: one pipeline's cases of one sweep."""
+    limit = None
+    for r in sorted(rows, key=lambda r: r["sweep_value"]):
+        if (r.get("within_threshold") or 0.0) < WORKING_AVAILABILITY:
+            break
+        limit = r["sweep_value"]
+    return limit
+
+
+def headline(rows: list[dict]) -> str:
+    """Per scenario: the best pipeline (by availability, then median error, then latency) of its cases without a
+    sweep (or, for a swept-only scenario, at the smallest swept value), with its availability, median / p95
+    attitude error and median pipeline latency; and per numeric sweep the working limit of each pipeline, best
+    first."""
+    lines = ["| scenario | best pipeline | availability | att. err. median / p95 (arcsec) | latency median (ms) "
+             f"| working up to (availability >= {WORKING_AVAILABILITY:g}) |", "|---|---|---|---|---|---|"]
+    for scenario in dict.fromkeys(r["scenario"] for r in rows):
+        cases = [r for r in rows if r["scenario"] == scenario]
+        plain = [r for r in cases if not r["sweep_key"]]
+        if not plain:
+            lowest = min(r["sweep_value"] for r in cases)
+            plain = [r for r in cases if r["sweep_value"] == lowest]
+        best = min(plain, key=_rank)
+        sweeps = []
+        for key in dict.fromkeys(r["sweep_key"] for r in cases if r["sweep_key"]):
+            swept = [r for r in cases if r["sweep_key"] == key and isinstance(r["sweep_value"], int | float)]
+            limits = {p: working_limit([r for r in swept if r["pipeline"] == p])
+                      for p in dict.fromkeys(r["pipeline"] for r in swept)}
+            order = sorted(limits, key=lambda p: (math.inf if limits[p] is None else -limits[p], p))
+            unit = key_unit(key)
+            sweeps.append(f"{key}: " + ", ".join(
+                f"{p} {'none' if limits[p] is None else _fmt(limits[p]) + (' ' + unit if unit else '')}"
+                for p in order))
+        where = "" if not best["sweep_key"] else f" ({best['sweep_key']} = {_fmt(best['sweep_value'])})"
+        lines.append(f"| {scenario} | {best['pipeline']}{where} | {_fmt(best.get('within_threshold'))} | "
+                     f"{_fmt(best.get('attitude_error_arcsec_median'))} / {_fmt(best.get('attitude_error_arcsec_p95'))}"
+                     f" | {_fmt(best.get('latency_pipeline_ms_median'))} | {'; '.join(sweeps) or '-'} |")
+    return ("## Headline\n\nPer scenario, its best pipeline (highest availability, then lowest median attitude "
+            "error, then lowest latency) and, per swept key, how far each pipeline keeps working: the largest swept "
+            f"value up to which every value has availability >= {WORKING_AVAILABILITY:g} (none: not even the "
+            "smallest).\n\n" + "\n".join(lines) + "\n")
+
+
 def _slug(*parts: str) -> str:
     return "-".join("".join(c if c.isalnum() or c in "_-" else "_" for c in p) for p in parts if p)
 
@@ -172,19 +230,31 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
             ("id-rate", ("id_rate_mean",), "ID rate (correct ids / detectable stars)", False),
         ):
             fig, ax = plt.subplots(figsize=(7, 4.5))
-            for pipeline in dict.fromkeys(r["pipeline"] for r in group):
+            pipelines = list(dict.fromkeys(r["pipeline"] for r in group))
+            values = sorted({r["sweep_value"] for r in group})
+            step = min(np.diff(values)) if len(values) > 1 else 1.0
+            for i, pipeline in enumerate(pipelines):
+                # identical pipelines would hide each other: each is shifted sideways by a fraction of the sweep
+                # step and drawn with its own marker, the first ones largest so that later ones sit inside them
+                dodge = (i - (len(pipelines) - 1) / 2) * 0.08 * step
+                marker, size = DODGE_MARKERS[i % len(DODGE_MARKERS)], 9 - 1.5 * min(i, 4)
                 pts = sorted((r["sweep_value"], *(r.get(c) for c in cols)) for r in group if r["pipeline"] == pipeline)
-                x = [p[0] for p in pts]
-                line = ax.plot(x, [np.nan if p[1] is None else p[1] for p in pts], "o-", label=f"{pipeline}"
-                               + (" median" if len(cols) > 1 else ""))[0]
+                x = [p[0] + dodge for p in pts]
+                line = ax.plot(x, [np.nan if p[1] is None else p[1] for p in pts], marker=marker, markersize=size,
+                               linestyle="-", alpha=0.85, label=f"{pipeline}" + (" median" if len(cols) > 1 else ""))[0]
                 if len(cols) > 1:
-                    ax.plot(x, [np.nan if p[2] is None else p[2] for p in pts], "s--", color=line.get_color(),
+                    ax.plot(x, [np.nan if p[2] is None else p[2] for p in pts], marker=marker, markersize=size * 0.7,
+                            linestyle="--", fillstyle="none", alpha=0.85, color=line.get_color(),
                             label=f"{pipeline} p95")
+            if len(pipelines) > 1:
+                xlabel_note = f"  [pipelines offset by {0.08 * step:.3g} for visibility]"
+            else:
+                xlabel_note = ""
             if logy:
                 ax.set_yscale("log")
             else:
                 ax.set_ylim(-0.02, 1.02)
-            ax.set_xlabel(xlabel)
+            ax.set_xlabel(xlabel + xlabel_note)
             ax.set_ylabel(ylabel)
             title = f"{scenario}: {ylabel.split(' (')[0]} vs {key.rsplit('.', 1)[-1]}"
             ax.grid(True, which="both", alpha=0.3)
@@ -198,6 +268,7 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
             for k, v in rec.items():
                 if k.startswith(LATENCY_PREFIX) and v is not None:
                     lat.setdefault(k[len(LATENCY_PREFIX):-len("_ms")], []).append(v)
+    made += _plot_distortion(run_files, folder, plt)
     for scenario, per in by_scenario.items():
         roles = sorted({role for lat in per.values() for role in lat})
         if not roles:
@@ -221,6 +292,34 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
         title = f"{scenario}: agent latency per role (wall clock, all steps)"
         ax.grid(True, axis="y", which="both", alpha=0.3)
         made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, 'latency')}.png")))
+    return made
+
+
+def _plot_distortion(run_files: list[Path], folder: Path, plt) -> list[tuple[str, Path]]:
+    """Per scenario whose camera carries uncalibrated distortion (over 0.05 px on the identified stars): prediction
+    error and distortion left after correction per step, one line per pipeline and seed."""
+    series: dict[str, list[tuple[str, list[dict]]]] = {}
+    for f in run_files:
+        header, steps, _ = read_run(f)
+        ident = header["identity"]
+        if ident["sweep"] is None and any((r.get("distortion_px_mean") or 0.0) > 0.05 for r in steps):
+            label = f"{ident['pipeline']['name']} s{ident['seed']}"
+            series.setdefault(ident["scenario"], []).append((label, steps))
+    made = []
+    for scenario, runs in series.items():
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        for i, (label, steps) in enumerate(sorted(runs)):
+            for key, style, what in (("prediction_error_px_mean", "-", "prediction"),
+                                     ("correction_error_px_mean", ":", "distortion left")):
+                pts = [(r["frame"], r[key]) for r in steps if r.get(key) is not None]
+                if pts:
+                    ax.plot(*zip(*pts, strict=True), style, color=f"C{i}", label=f"{label} {what}")
+        ax.set_yscale("log")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("error on identified stars (px)")
+        ax.grid(True, which="both", alpha=0.3)
+        title = f"{scenario}: prediction error and distortion left per step"
+        made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, 'distortion')}.png")))
     return made
 
 
@@ -249,12 +348,14 @@ def write_report(bench, run_files: list[Path], out: Path) -> Path:
     out = Path(out)
     rows = aggregate(run_files)
     tables = markdown_tables(rows)
-    (out / "summary.md").write_text(f"# {bench.name}: summary\n\n{tables}", encoding="utf-8")
+    top = headline(rows)
+    (out / "summary.md").write_text(f"# {bench.name}: summary\n\n{top}\n{tables}", encoding="utf-8")
     write_csv(rows, out / "summary.csv")
     plots = plot(rows, run_files, out / "plots")
     lines = [f"# Benchmark report: {bench.name}", ""]
     if bench.description:
         lines += [bench.description, ""]
+    lines += [top]
     lines += [
         f"Bench file: `{bench.source}`.  {len(run_files)} runs, {sum(r['steps'] for r in rows)} scored steps.  "
         "Per-step scores: [`runs/`](runs/) (one JSON-lines file per run, its identity in the first line).  "

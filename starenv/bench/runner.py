@@ -6,9 +6,12 @@ steps): the same run gives bit-identical score records whichever executor ran it
 
 Results: ``OUT/runs/<run_id>.jsonl``, one JSON object per line: a header ``{"identity": ..., "digest": ...,
 "run_id": ...}``, one line per step (the flat record of ``starenv.scoring.flatten``, with ``step``),
-and a footer ``{"complete": true, "steps": n, "digest": ..., "dropped": [...], "lost_at": ..., "wall_s": ...}``.
-The file is written whole under a temporary name, then moved into place (``os.replace``), so a killed runner leaves
-either a complete file or none; on restart a run whose file is complete and carries the same digest is reused.
+and a footer ``{"complete": true, "steps": n, "digest": ..., "steps_sha256": ..., "dropped": [...], "lost_at": ...,
+"wall_s": ...}``; ``steps_sha256`` is the SHA-256 of the step lines (UTF-8, each line with its ``\n``) and the
+header's ``digest`` the SHA-256 of its identity (compact JSON, sorted keys).  The file is
+written whole under a temporary name, then moved into place (``os.replace``), so a killed runner leaves either a
+complete file or none; on restart a run whose file is complete, carries the same digest and whose step lines match
+their checksum is reused; any other existing file (edited, truncated, malformed) is run again and listed.
 
 Workers return their records to the driver, which writes the files.  With recordings, each worker writes
 ``OUT/recordings/<run_id>.mcap`` itself (on a Ray cluster ``OUT`` must be on a file system every node shares).
@@ -16,7 +19,7 @@ Workers return their records to the driver, which writes the files.  With record
 
 from __future__ import annotations
 
-import importlib
+import hashlib
 import json
 import os
 import sys
@@ -27,7 +30,7 @@ from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
-from starenv.bench.spec import BenchError, RunSpec
+from starenv.bench.spec import MCAP_RECORDER, BenchError, RunSpec
 
 LATENCY_PREFIX = "latency_"
 
@@ -44,19 +47,22 @@ class RunResult:
 
 
 def execute(run: RunSpec, recording: str | None = None, recorder: str | None = None) -> RunResult:
-    """Run one episode; ``recorder`` ("module:Callable") is called with the ``recording`` path for an Observer."""
+    """Run one episode; with a ``recorder`` (``MCAP_RECORDER``) it is recorded to the ``recording`` path."""
     from starenv import scenario as scenario_mod
     from starenv.env import StarSensorEnv
     from starenv.episode import run_episode
 
     scenario = scenario_mod.load(run.scenario_data(), run.overrides)
     env = StarSensorEnv(scenario.data)
-    pipeline = run.pipeline.build(scenario)
+    pipeline = run.pipeline.build(scenario, run.trust)
     observers = []
     if recorder is not None and recording is not None:
-        module, _, attr = recorder.partition(":")
+        if recorder != MCAP_RECORDER:
+            raise BenchError(f"recorder {recorder!r}: the only recorder is {MCAP_RECORDER!r}")
+        from starenv.record.mcap import McapRecorder
+
         Path(recording).parent.mkdir(parents=True, exist_ok=True)
-        observers.append(getattr(importlib.import_module(module), attr)(recording))
+        observers.append(McapRecorder(recording))
     result = run_episode(env, pipeline, seed=run.seed, steps=run.steps, observers=observers)
     return RunResult(run.run_id, result.records, [int(d) for d in result.dropped], result.lost_at, result.wall_s)
 
@@ -69,39 +75,66 @@ def recording_file(out: Path, run: RunSpec) -> Path:
     return Path(out) / "recordings" / f"{run.run_id}.mcap"
 
 
+def steps_sha256(lines: list[str]) -> str:
+    """SHA-256 of a run file's step lines (each with its newline)."""
+    return hashlib.sha256("".join(line + "\n" for line in lines).encode("utf-8")).hexdigest()
+
+
 def read_run(path: Path) -> tuple[dict, list[dict], dict]:
-    """Header, step records and footer of a run file; ValueError if it is not a complete run file."""
-    lines = Path(path).read_text(encoding="utf-8").splitlines()
+    """Header, step records and footer of a run file; ValueError if it is not a complete, intact run file."""
+    try:
+        lines = Path(path).read_text(encoding="utf-8").split("\n")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a complete run file (not UTF-8: {exc})") from exc
+    if lines and lines[-1] == "":
+        lines.pop()
     if len(lines) < 2:
         raise ValueError(f"{path}: not a complete run file (fewer than 2 lines)")
     try:
         header, footer = json.loads(lines[0]), json.loads(lines[-1])
-        steps = [json.loads(line) for line in lines[1:-1]]
     except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not a complete run file ({exc})") from exc
-    if not footer.get("complete") or footer.get("steps") != len(steps) or footer.get("digest") != header.get("digest"):
+        raise ValueError(f"{path}: not a complete run file (header or footer: {exc})") from exc
+    if not isinstance(header, dict) or not isinstance(footer, dict):
+        raise ValueError(f"{path}: not a complete run file (header or footer is not a JSON object)")
+    body = lines[1:-1]
+    if not footer.get("complete") or footer.get("steps") != len(body) or footer.get("digest") != header.get("digest"):
         raise ValueError(f"{path}: not a complete run file (no matching footer)")
+    identity = json.dumps(header.get("identity"), sort_keys=True, separators=(",", ":"))
+    if hashlib.sha256(identity.encode()).hexdigest() != header.get("digest"):
+        raise ValueError(f"{path}: its header's identity does not match its digest (edited or damaged)")
+    if footer.get("steps_sha256") != steps_sha256(body):
+        raise ValueError(f"{path}: its step lines do not match their checksum (edited or damaged)")
+    steps = []
+    for k, line in enumerate(body):
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: step line {k + 1} is not JSON ({exc})") from exc
+        if not isinstance(record, dict) or record.get("step") != k:
+            raise ValueError(f"{path}: step line {k + 1} is not the record of step {k}")
+        steps.append(record)
     return header, steps, footer
 
 
-def is_complete(path: Path, run: RunSpec) -> bool:
-    """True when ``path`` holds a complete run file whose digest is ``run``'s."""
+def damage(path: Path, run: RunSpec) -> str | None:
+    """Why the existing file ``path`` cannot be reused for ``run`` (None when it can, or when there is no file)."""
+    if not Path(path).is_file():
+        return None
     try:
         header, _, _ = read_run(path)
-    except (OSError, ValueError):
-        return False
-    return header.get("digest") == run.digest
+    except (OSError, ValueError) as exc:
+        return str(exc)
+    return None if header.get("digest") == run.digest else f"{path}: its digest is not the run's"
 
 
 def write_run(path: Path, run: RunSpec, result: RunResult) -> None:
     """Write a run file atomically: a temporary file in the same folder, flushed, then ``os.replace``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     header = {"run_id": run.run_id, "digest": run.digest, "identity": run.identity()}
-    footer = {"complete": True, "steps": len(result.records), "digest": run.digest, "dropped": result.dropped,
-              "lost_at": result.lost_at, "wall_s": result.wall_s}
-    lines = [json.dumps(header, sort_keys=True)]
-    lines += [json.dumps({"step": k, **rec}, sort_keys=True) for k, rec in enumerate(result.records)]
-    lines.append(json.dumps(footer, sort_keys=True))
+    body = [json.dumps({"step": k, **rec}, sort_keys=True) for k, rec in enumerate(result.records)]
+    footer = {"complete": True, "steps": len(result.records), "digest": run.digest, "steps_sha256": steps_sha256(body),
+              "dropped": result.dropped, "lost_at": result.lost_at, "wall_s": result.wall_s}
+    lines = [json.dumps(header, sort_keys=True), *body, json.dumps(footer, sort_keys=True)]
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
@@ -192,7 +225,10 @@ def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str 
     executor = _ray(ray_address, ray_options) if use_ray else _local((os.cpu_count() or 1) if jobs is None else jobs)
     todo, reused = [], []
     for run in bench.runs:
-        complete = is_complete(run_file(out, run), run)
+        why = damage(run_file(out, run), run)
+        if why is not None:
+            log(f"  recomputing {run.run_id}: {why}")
+        complete = why is None and run_file(out, run).is_file()
         if complete and bench.recorder is not None and run.record and not recording_file(out, run).is_file():
             complete = False
         (reused if complete else todo).append(run)

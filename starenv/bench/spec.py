@@ -1,13 +1,12 @@
 """Benchmark files: scenarios x agent pipelines x seeds, with one scenario key swept per run group.
 
-A bench file is TOML (bundled ones live in ``benches/`` at the repository root and are named without ``.toml``)::
+A bench file is TOML (bundled ones are package data in ``starenv/data/benches/``, named without ``.toml``)::
 
     name = "my-bench"                 # optional, defaults to the file's stem
     description = "..."               # optional
     seeds = [0, 1]                    # default seeds of every group (default: each scenario's own seed)
     steps = 30                        # default scored steps per run (default: the whole scenario)
-    recordings = false                # true: one MCAP per run via starenv.record.mcap:McapRecorder;
-                                      # or "module:Callable", called with the recording's path, returning an Observer
+    recordings = false                # true: one MCAP per run (starenv.record.mcap:McapRecorder)
 
     [pipelines.svd]                   # a named pipeline: the scenario's own [pipeline] with these roles replaced
     solver = "starenv.agents.solve:SvdSolver"          # role = "module:Class" or "none"
@@ -31,6 +30,11 @@ overrides ``motion.rate_dps`` with ``10 / sqrt(3) * [1, 1, 1]``); ranges include
 Built-in pipelines (``PRESETS``): ``scenario`` (the scenario's own ``[pipeline]``), ``lost_in_space`` (the same
 with the lost-in-space identifier, no tracking) and ``tracking`` (the same with the tracking identifier).
 
+A bench file is data: it names scenarios, keys and agent classes, and nothing else is imported or called.  Agents
+named by a ``"module:Class"`` string load only from ``starenv`` or from module prefixes the caller trusts (``trust=``
+here, ``--trust`` on the command line; a file cannot grant trust itself), and only classes that implement their
+role's protocol are constructed (:func:`starenv.agents.pipeline.load_agent`).
+
 Loading validates everything before any run starts: unknown keys, missing scenarios, every scenario x sweep value
 loaded with its overrides, every pipeline built once per scenario.  Errors are :class:`BenchError` naming the file,
 the key path and the expected form.
@@ -43,13 +47,14 @@ import json
 import math
 import tomllib
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from starenv import scenario as scenario_mod
 from starenv.config import ConfigError, Table, is_number, parse_toml
 
-BENCH_DIR = Path(__file__).resolve().parent.parent.parent / "benches"
+BENCH_DIR = Path(str(resources.files("starenv").joinpath("data", "benches")))  # package data
 MCAP_RECORDER = "starenv.record.mcap:McapRecorder"
 PRESETS: dict[str, dict[str, str]] = {
     "scenario": {},
@@ -76,11 +81,12 @@ class PipelineChoice:
         return {"name": self.name, "agents": self.agents, "options": self.options,
                 "catalog_mag_limit": self.catalog_mag_limit}
 
-    def build(self, scenario):
-        """The ``Pipeline`` for a loaded scenario (raises ValueError for an unloadable agent or a wrong protocol)."""
+    def build(self, scenario, trust: tuple[str, ...] = ()):
+        """The ``Pipeline`` for a loaded scenario (raises ValueError for an unloadable, untrusted agent or a wrong
+        protocol; ``trust``: module prefixes outside ``starenv`` agents may come from)."""
         from starenv.agents.pipeline import Pipeline
 
-        return Pipeline.from_spec(scenario.pipeline.replaced_by(self.spec))
+        return Pipeline.from_spec(scenario.pipeline.replaced_by(self.spec), trust)
 
     @property
     def spec(self) -> scenario_mod.PipelineSpec:
@@ -117,6 +123,7 @@ class RunSpec:
     seed: int
     steps: int
     record: bool = True  # whether the bench's recorder (if any) records this run; not part of its identity
+    trust: tuple[str, ...] = ()  # module prefixes its agents may come from (the caller's, never the file's)
 
     def identity(self) -> dict:
         """What the run's results depend on (the scenario by the SHA-256 of its text)."""
@@ -150,7 +157,7 @@ class RunSpec:
 
 @dataclass
 class Bench:
-    """A validated benchmark: its runs in file order and the recorder ("module:Callable") or None."""
+    """A validated benchmark: its runs in file order and the recorder (``MCAP_RECORDER``) or None."""
 
     name: str
     description: str
@@ -160,7 +167,7 @@ class Bench:
 
 
 def resolve_bench(bench: str | Path) -> Path:
-    """Path of a bench file given by path or by the name of a bundled one (``bundled`` -> ``benches/bundled.toml``)."""
+    """Path of a bench file given by path or by the name of a bundled one (``bundled``)."""
     path = Path(bench)
     if path.suffix != ".toml" and (BENCH_DIR / f"{bench}.toml").is_file():
         return BENCH_DIR / f"{bench}.toml"
@@ -209,23 +216,9 @@ def _pipeline_choice(name: str, tbl: Table) -> PipelineChoice:
 
 
 def _recorder(value: Any, source: str) -> str | None:
-    if value is False or value is None:
-        return None
-    if value is True:
-        value = MCAP_RECORDER
-    module, sep, attr = value.partition(":") if isinstance(value, str) else ("", "", "")
-    if not (sep and module and attr):
-        raise BenchError(f"{source}: recordings: expected true, false or 'module:Callable', got {value!r}")
-    import importlib
-
-    try:
-        factory = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
-        hint = " (MCAP recording needs the starenv.record.mcap module)" if value == MCAP_RECORDER else ""
-        raise BenchError(f"{source}: recordings: cannot load {value!r}{hint}: {exc}") from exc
-    if not callable(factory):
-        raise BenchError(f"{source}: recordings: {value!r} is not callable (expected a factory path -> Observer)")
-    return value
+    if not isinstance(value, bool):
+        raise BenchError(f"{source}: recordings: expected true or false, got {value!r}")
+    return MCAP_RECORDER if value else None
 
 
 def _scenario_path(name: Any, bench_dir: Path, where: str, source: str) -> Path:
@@ -240,10 +233,15 @@ def _scenario_path(name: Any, bench_dir: Path, where: str, source: str) -> Path:
     raise BenchError(f"{source}: {where}: scenario {name!r} is neither a file nor a bundled scenario ({names})")
 
 
-def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = None, check: bool = True) -> Bench:
+def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = None, check: bool = True,
+                trust: tuple[str, ...] = ()) -> Bench:
     """Parse and validate bench TOML ``text``; with ``check`` every scenario x sweep value is loaded with its
-    overrides and every pipeline is built once per scenario (an agent that does not load fails here)."""
+    overrides and every pipeline is built once per scenario (an agent that does not load fails here).  ``trust``:
+    module prefixes outside ``starenv`` whose agent classes the file may name (checked whatever ``check`` says)."""
+    from starenv.agents.pipeline import check_trust
+
     bench_dir = Path(".") if bench_dir is None else bench_dir
+    trust = check_trust(trust)
     data = parse_toml(text, source, BenchError)
     top = Table(data, "", source, BenchError)
     name = top.get("name", Path(source).stem)
@@ -311,7 +309,7 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
             if check and value == (sweep.values[0] if sweep else None):
                 for n in dict.fromkeys(names):
                     try:
-                        pipelines[n].build(scenario)
+                        pipelines[n].build(scenario, trust)
                     except ValueError as exc:
                         origin = f"pipelines.{n}" if n not in PRESETS else f"{g.where('pipelines')} ({n})"
                         raise BenchError(f"{source}: {origin}: {exc}") from exc
@@ -320,7 +318,7 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
                     runs.append(RunSpec(
                         sc_name, str(path), text_sc, overrides, sweep.key if sweep else None, value,
                         sweep.axis if sweep else None, pipelines[n], int(seed),
-                        int(steps if steps is not None else scenario.n_steps - 1), record,
+                        int(steps if steps is not None else scenario.n_steps - 1), record, trust,
                     ))
     ids = {}
     for r in runs:
@@ -331,7 +329,7 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
     return Bench(name, description, source, runs, recorder)
 
 
-def load_bench(bench: str | Path, check: bool = True) -> Bench:
+def load_bench(bench: str | Path, check: bool = True, trust: tuple[str, ...] = ()) -> Bench:
     """Load a bench file by path or bundled name (see :func:`parse_bench`)."""
     path = resolve_bench(bench)
-    return parse_bench(path.read_text(encoding="utf-8"), str(path), path.parent, check)
+    return parse_bench(path.read_text(encoding="utf-8"), str(path), path.parent, check, trust)

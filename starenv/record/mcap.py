@@ -1,9 +1,20 @@
 """MCAP recordings of episodes in Foxglove's well-known protobuf schemas, readable by Foxglove and Rerun.
 
-Channels (log times: integer ns of simulation time, the frame's mid-exposure; never wall clock):
+Channels (log times and header stamps: integer ns, the frame's mid-exposure simulation time placed on the scenario's
+epoch, never wall clock.  Simulation time 0 is the scenario's ``epoch`` read as a Julian epoch, J2000.0 (2000-01-01
+12:00:00) + (epoch - 2000) x 365.25 days, written as Unix time with the TT-UTC offset (~69 s) and leap seconds
+ignored: ``epoch = 2026.0`` puts frame 0 at 2026-01-01T00:00:00 + its mid-exposure.  The offset is the ``starenv.run``
+metadata's ``time_origin_unix_ns``; the ``/scores`` and ``/gyro`` payloads keep simulation seconds):
 
 * ``/head{h}/image``: ``foxglove.RawImage``, ``mono16`` little-endian, the frame as the sensor delivered it (none on a
   dropped frame);
+* ``/head{h}/calibration``: ``foxglove.CameraCalibration``, frame ``head{h}``: the calibrated (sensor-known) pinhole
+  intrinsics with the principal point + 0.5 px (Foxglove's pixel origin, below), ``plumb_bob`` coefficients
+  ``[k1, k2, p1, p2, k3]`` for a Brown-Conrady head, no coefficients for other distortion models (seed 000's per-axis
+  radial and seed 003's Legendre field have no Foxglove equivalent: their images are shown undistorted-as-pinhole);
+* ``/head{h}/mounting``: ``foxglove.FrameTransform`` parent ``body``, child ``head{h}``: the calibrated mounting
+  (camera axes: +Z boresight, +X along columns, +Y along rows, Foxglove's optical-frame convention), i.e. the inverse
+  of the body -> camera rotation.  Calibration and mounting are written with every step so that seeking finds them;
 * ``/head{h}/truth``, ``/head{h}/detections``, ``/head{h}/predictions``: ``foxglove.ImageAnnotations``: the true
   stars' trail centroids, the pipeline's detections and its predicted positions as points, with a ``HIP n`` label on
   every point that carries a catalog id (true stars, identified detections, predictions).  Foxglove's image
@@ -22,7 +33,8 @@ pipeline agents, starenv version) and, at the end, ``starenv.outcome`` (steps re
 Crash safety: the file is written as ``FILE.mcap.partial`` (chunks reach the file as they fill) and renamed to
 ``FILE.mcap`` when the recorder closes, also after an error (the error is logged to ``/log`` first), so an existing
 finished recording is replaced in one step, never half-overwritten.  A killed process leaves the ``.partial`` file,
-readable up to its last complete chunk with :func:`read_partial`.
+readable up to its last complete chunk: :func:`read_partial` counts its messages, :func:`recover` (``starenv recover
+FILE.mcap.partial``) writes a finished MCAP of its complete steps, and ``starenv view`` reviews it directly.
 """
 
 from __future__ import annotations
@@ -36,12 +48,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding
@@ -52,11 +64,21 @@ from mcap_protobuf.schema import register_schema
 import starenv
 from starenv.record import messages
 from starenv.record.step import ERROR, HeadData, Stars2D, StepData, from_step_log, time_ns
+from starenv.sim.optics import BrownConrady
 
 MAGIC = b"\x89MCAP0\r\n"
 PIXEL_ORIGIN = 0.5  # Foxglove/Rerun image coordinates = starenv pixel coordinates + 0.5
 LAYERS = {"truth": (0.2, 0.9, 0.2), "detections": (1.0, 0.3, 0.2), "predictions": (0.2, 0.7, 1.0)}  # RGB
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+J2000_UNIX_S = 946_728_000  # 2000-01-01T12:00:00 as Unix time (s)
+JULIAN_YEAR_S = 365.25 * 86_400
+
+
+def time_origin_ns(epoch: float) -> int:
+    """Unix time (ns) of simulation time 0: the scenario's ``epoch`` (Julian year), as the module docstring says."""
+    return int(round((J2000_UNIX_S + (float(epoch) - 2000.0) * JULIAN_YEAR_S) * 1e9))
 
 
 def _stamp(msg, t_ns: int) -> None:
@@ -95,6 +117,28 @@ def _stars(msg: ImageAnnotations) -> Stars2D:
     return Stars2D(xy - PIXEL_ORIGIN, ids)
 
 
+def camera_messages(cameras, t_ns: int) -> list[tuple[str, object]]:
+    """Each head's ``foxglove.CameraCalibration`` and body -> head ``FrameTransform`` (see the module docstring)."""
+    out: list[tuple[str, object]] = []
+    for h, cam in enumerate(cameras):
+        cx, cy = cam.cx + PIXEL_ORIGIN, cam.cy + PIXEL_ORIGIN
+        cal = CameraCalibration(frame_id=f"head{h}", width=cam.width, height=cam.height,
+                                K=[cam.fx, 0.0, cx, 0.0, cam.fy, cy, 0.0, 0.0, 1.0],
+                                R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                                P=[cam.fx, 0.0, cx, 0.0, 0.0, cam.fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+        d = cam.distortion
+        if isinstance(d, BrownConrady):
+            cal.distortion_model, cal.D[:] = "plumb_bob", [d.k1, d.k2, d.p1, d.p2, d.k3]
+        _stamp(cal, t_ns)
+        out.append((f"/head{h}/calibration", cal))
+        tf = FrameTransform(parent_frame_id="body", child_frame_id=f"head{h}")
+        _stamp(tf, t_ns)
+        x, y, z, w = cam.mounting.inv().as_quat()  # head axes in body coordinates
+        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = float(x), float(y), float(z), float(w)
+        out.append((f"/head{h}/mounting", tf))
+    return out
+
+
 def _transform(q: np.ndarray, child: str, t_ns: int) -> FrameTransform:
     msg = FrameTransform(parent_frame_id="icrs", child_frame_id=child)
     _stamp(msg, t_ns)
@@ -109,9 +153,9 @@ def _log(level: int, text: str, t_ns: int) -> Log:
     return msg
 
 
-def encode_step(data: StepData) -> list[tuple[str, object]]:
-    """The (topic, protobuf message) pairs of one step, in a fixed order."""
-    t = data.time_ns
+def encode_step(data: StepData, origin_ns: int = 0) -> list[tuple[str, object]]:
+    """The (topic, protobuf message) pairs of one step, in a fixed order, stamped ``origin_ns + data.time_ns``."""
+    t = origin_ns + data.time_ns
     out: list[tuple[str, object]] = []
     for h, head in enumerate(data.heads):
         if head.image is not None:
@@ -121,7 +165,7 @@ def encode_step(data: StepData) -> list[tuple[str, object]]:
     out.append(("/attitude/true", _transform(data.attitude_true, "body", t)))
     if data.attitude_estimate is not None:
         out.append(("/attitude/estimate", _transform(data.attitude_estimate, "body_estimate", t)))
-    scores = messages.encode_scores(data.frame, t * 1e-9, data.source, data.scores, data.record)
+    scores = messages.encode_scores(data.frame, data.time_ns * 1e-9, data.source, data.scores, data.record)
     out.append(("/scores", scores))
     gyro = messages.classes()["GyroSamples"](frame=data.frame, t_s=data.gyro_t.tolist(),
                                              rate_x_rad_s=data.gyro_rate[:, 0].tolist(),
@@ -176,6 +220,8 @@ class McapRecorder:
         base = env.unwrapped
         sc = base.scenario
         self._sizes = [(h.camera.height, h.camera.width) for h in sc.heads]
+        self._cameras = base.cameras
+        self._origin_ns = time_origin_ns(sc.epoch)
         self._period_ns = time_ns(sc.frame_period_s)
         self._seed = int(seed)
         self._agents = None if pipeline is None else pipeline.describe()
@@ -189,6 +235,7 @@ class McapRecorder:
         self._writer.add_metadata("starenv.scenario", {"name": sc.name, "toml": sc.to_toml()})
         self._writer.add_metadata("starenv.run", {
             "seed": str(self._seed), "heads": str(len(sc.heads)), "starenv_version": starenv.__version__,
+            "epoch": repr(float(sc.epoch)), "time_origin_unix_ns": str(self._origin_ns),
             "pipeline": json.dumps(self._agents),
             "pipeline_class": "none" if pipeline is None else f"{type(pipeline).__module__}:{type(pipeline).__name__}",
         })
@@ -210,9 +257,10 @@ class McapRecorder:
                     self._failed = exc
 
     def write(self, data: StepData) -> None:
-        """Write one step (log time ``data.time_ns``)."""
-        for topic, msg in encode_step(data):
-            self._write(topic, msg, data.time_ns)
+        """Write one step (log time: the time origin + ``data.time_ns``)."""
+        t = self._origin_ns + data.time_ns
+        for topic, msg in encode_step(data, self._origin_ns) + camera_messages(self._cameras, t):
+            self._write(topic, msg, t)
         self._file.flush()  # every chunk completed by this step goes to the file now
         self._steps += 1
         self._last_ns = data.time_ns
@@ -247,7 +295,7 @@ class McapRecorder:
             status = "error"
             t = 0 if self._last_ns is None else self._last_ns + self._period_ns  # the step that failed
             text = f"frame {self._steps}: run stopped by {type(error).__name__}: {error}"
-            self._write("/log", _log(ERROR, text, t), t)
+            self._write("/log", _log(ERROR, text, self._origin_ns + t), self._origin_ns + t)
         self._writer.add_metadata("starenv.outcome", {
             "status": status, "steps": str(self._steps),
             "error": "" if error is None else f"{type(error).__name__}: {error}",
@@ -271,9 +319,25 @@ def check_mcap(path: str | os.PathLike) -> Path:
     return p
 
 
+def is_finished(path: str | os.PathLike) -> bool:
+    """Whether the MCAP file ``path`` was finished (it ends with the closing magic after its footer)."""
+    p = check_mcap(path)
+    with open(p, "rb") as f:
+        f.seek(max(0, p.stat().st_size - len(MAGIC)))
+        return p.stat().st_size >= 2 * len(MAGIC) and f.read() == MAGIC
+
+
+def check_finished(path: str | os.PathLike) -> Path:
+    """``path`` if it is a finished MCAP file, else ``ValueError`` saying how to read what it holds."""
+    if not is_finished(path):
+        raise ValueError(f"recording {str(path)!r}: unfinished (the run that wrote it stopped before closing it): "
+                         f"review it with 'starenv view', or make it whole with 'starenv recover'")
+    return Path(path)
+
+
 def read_metadata(path: str | os.PathLike) -> dict[str, dict[str, str]]:
     """The metadata records of a finished recording: name -> key/value strings."""
-    with open(check_mcap(path), "rb") as f:
+    with open(check_finished(path), "rb") as f:
         return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
 
 
@@ -316,43 +380,102 @@ def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int, next_fr
 def read_steps(path: str | os.PathLike) -> Iterator[StepData]:
     """The steps of a finished recording, in time order (messages without scores, e.g. the error that stopped a run,
     come back as a step of their own, numbered after the last scored one)."""
-    path = check_mcap(path)
-    n_heads = int(read_metadata(path)["starenv.run"]["heads"])
+    path = check_finished(path)
+    run = read_metadata(path)["starenv.run"]
+    n_heads, origin = int(run["heads"]), int(run.get("time_origin_unix_ns", 0))  # older files: 0
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         group: list[tuple[str, object]] = []
         t_group, frame = None, -1
         for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
             if t_group is not None and message.log_time != t_group:
-                step = _step_from(group, t_group, n_heads, frame + 1)
+                step = _step_from(group, t_group - origin, n_heads, frame + 1)
                 frame = step.frame
                 yield step
                 group = []
             t_group = message.log_time
             group.append((channel.topic, decoded))
         if group:
-            yield _step_from(group, t_group, n_heads, frame + 1)
+            yield _step_from(group, t_group - origin, n_heads, frame + 1)
+
+
+def _complete_records(path: str | os.PathLike) -> tuple[dict, dict, list, list]:
+    """Schemas (id -> record), channels (id -> record), metadata records and messages (in file order) of a possibly
+    unfinished file, read as a stream up to the first incomplete or damaged record; a chunk is used whole or not at
+    all (its CRC is checked before any of its messages is kept)."""
+    from mcap.records import Channel, Chunk, Message, Metadata, Schema
+    from mcap.stream_reader import breakup_chunk
+
+    schemas, channels, metadata, messages_ = {}, {}, [], []
+
+    def take(record) -> None:
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, Metadata):
+            metadata.append(record)
+        elif isinstance(record, Message):
+            messages_.append(record)
+
+    with open(check_mcap(path), "rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+                if isinstance(record, Chunk):
+                    inner = list(breakup_chunk(record, validate_crc=True))  # raises before anything is kept
+                    for r in inner:
+                        take(r)
+                else:
+                    take(record)
+        except Exception:  # truncation, a CRC or decompression error: what came before is kept
+            pass
+    return schemas, channels, metadata, messages_
 
 
 def read_partial(path: str | os.PathLike) -> dict[str, int]:
     """Messages per topic in a possibly unfinished file (e.g. the ``.partial`` of a killed run), read as a stream up
     to the first incomplete record; chunk CRCs are checked."""
-    from mcap.records import Channel, Chunk
-    from mcap.stream_reader import breakup_chunk
-
+    _, channels, _, msgs = _complete_records(path)
     counts: dict[str, int] = {}
-    topics: dict[int, str] = {}
-    with open(path, "rb") as f:
-        try:
-            for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
-                if isinstance(record, Channel):
-                    topics[record.id] = record.topic
-                elif isinstance(record, Chunk):
-                    for inner in breakup_chunk(record, validate_crc=True):
-                        if isinstance(inner, Channel):
-                            topics[inner.id] = inner.topic
-                        elif hasattr(inner, "channel_id"):
-                            counts[topics[inner.channel_id]] = counts.get(topics[inner.channel_id], 0) + 1
-        except (McapError, EOFError, ValueError):
-            pass  # the end of what was written before the process died
+    for m in msgs:
+        topic = channels[m.channel_id].topic
+        counts[topic] = counts.get(topic, 0) + 1
     return counts
+
+
+def recover(partial: str | os.PathLike, out: str | os.PathLike) -> int:
+    """Write ``out``, a finished MCAP holding every complete step of the unfinished recording ``partial`` (up to its
+    last complete chunk; a step counts when its ``/gyro`` message, the last of a step, reached the file), with the
+    recording's metadata and a ``starenv.outcome`` of status ``recovered``.  Returns the number of steps kept."""
+    schemas, channels, metadata, msgs = _complete_records(partial)
+    names = {m.name: dict(m.metadata) for m in metadata}
+    if "starenv.run" not in names:
+        raise ValueError(f"recording {str(partial)!r}: nothing recoverable (no starenv.run metadata reached the file)")
+    gyro = {cid for cid, c in channels.items() if c.topic == "/gyro"}
+    done = {m.log_time for m in msgs if m.channel_id in gyro}
+    kept = [m for m in msgs if m.log_time in done and m.channel_id in channels]
+    out = Path(out)
+    tmp = out.with_name(out.name + ".tmp")
+    with open(tmp, "wb") as f:
+        writer = Writer(f, compression=CompressionType.ZSTD)
+        writer.start(profile="", library=f"{LIBRARY_IDENTIFIER} starenv/{starenv.__version__}")
+        for m in metadata:
+            if m.name != "starenv.outcome":
+                writer.add_metadata(m.name, dict(m.metadata))
+        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in schemas.items()}
+        channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
+                                                    dict(c.metadata)) for cid, c in channels.items()}
+        for m in kept:
+            writer.add_message(channel_ids[m.channel_id], log_time=m.log_time, data=m.data,
+                               publish_time=m.publish_time, sequence=m.sequence)
+        run = names["starenv.run"]
+        agents = json.loads(run.get("pipeline", "null"))
+        writer.add_metadata("starenv.outcome", {
+            "status": "recovered", "steps": str(len(done)),
+            "error": f"the run stopped before its recording was finished; {len(done)} complete steps recovered",
+            "reproduce": reproduce_command("scenario.toml", int(run["seed"]), len(done), agents),
+            "scenario_toml": "the 'toml' entry of the starenv.scenario metadata record",
+        })
+        writer.finish()
+    os.replace(tmp, out)
+    return len(done)

@@ -23,7 +23,8 @@ HEAD_FIELDS = {
     "centroid_error_px_mean": DOUBLE, "centroid_error_px_max": DOUBLE, "detection_recall": DOUBLE,
     "detection_precision": DOUBLE, "id_rate": DOUBLE, "false_id_rate": DOUBLE, "ids_correct": INT64,
     "ids_wrong": INT64, "solved": BOOL, "prediction_error_px_mean": DOUBLE, "prediction_error_px_max": DOUBLE,
-    "predictions_scored": INT64,
+    "predictions_scored": INT64, "correction_error_px_mean": DOUBLE, "correction_error_x_px": DOUBLE,
+    "correction_error_y_px": DOUBLE, "distortion_px_mean": DOUBLE,
 }
 _PY = {DOUBLE: float, INT64: int, BOOL: bool}
 HEAD_ATTITUDE_FIELDS = ("pitch_arcsec", "yaw_arcsec", "roll_arcsec", "cross_boresight_arcsec")

@@ -8,12 +8,20 @@ Both paths log each step with :func:`log_step`, so they produce the same entitie
   starenv's positions + 0.5 px;
 * ``metrics/{stage}/{metric}``: every metric of the step's flat score record as a scalar series, grouped by stage
   (attitude, detection, identification, prediction, restoration, latency, other) -- new metrics appear on their own;
-* ``log``: dropped frames, steps without a solution and the error that stopped a run, as text log entries.
+* ``log``: dropped frames, steps without a solution and the error that stopped a run, as text log entries;
+* ``attitude/true`` and ``attitude/estimate``: 3-D arrows in ICRS (unit sphere): the body's +X, +Y, +Z axes (red,
+  green, blue; the estimate's at 0.9 length and paler, so both stay visible when they coincide) and each head's
+  boresight (the calibrated mounting's +Z; ``bore{h}``, white for the truth, grey for the estimate), from the
+  attitude ICRS -> body (conjugated: arrows are body directions written in ICRS); ``attitude/stars/truth`` (green):
+  the true stars' trail centroids seen through the calibrated cameras at the true attitude, and
+  ``attitude/stars/detections`` (red): the detections at the estimated attitude, on the unit sphere with their ids;
+* ``gyro/rate_dps/{x,y,z}``: every gyro sample (deg/s, body frame) at its own time on ``sim_time`` (on ``frame`` all
+  of a step's samples share the frame's index).
 
 Timelines: ``frame`` (sequence: the frame index) and ``sim_time`` (duration: simulation time at mid-exposure).  No
 wall-clock timeline (``log_time`` is switched off) and a recording id derived from the MCAP file's bytes (or, live,
 from the scenario, seed and pipeline), so the same run gives the same recording content.  rerun-sdk is imported
-inside the functions (an optional dependency).
+inside the functions (it is heavy to import).
 """
 
 from __future__ import annotations
@@ -21,11 +29,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import tomllib
 import uuid
 from pathlib import Path
 
 import numpy as np
 
+from starenv import scenario as scenario_mod
 from starenv.record.step import ERROR, INFO, WARNING, StepData, from_step_log
 
 APPLICATION_ID = "starenv"
@@ -33,7 +43,8 @@ PIXEL_ORIGIN = 0.5
 COLORS = {"truth": (50, 230, 50), "detections": (255, 80, 50), "predictions": (50, 180, 255)}
 STAGES = (("attitude", ("available", "within_threshold", "attitude_", "cross_boresight_", "roll_", "pitch_", "yaw_")),
           ("detection", ("centroid_", "detection_")), ("identification", ("id_rate", "false_id_rate", "solved")),
-          ("prediction", ("prediction_",)), ("restoration", ("restoration_",)), ("latency", ("latency_",)))
+          ("correction", ("correction_", "distortion_")), ("prediction", ("prediction_",)),
+          ("restoration", ("restoration_",)), ("latency", ("latency_",)))
 LEVELS = {INFO: "INFO", WARNING: "WARN", ERROR: "ERROR"}
 
 
@@ -57,8 +68,11 @@ def blueprint(n_heads: int):
 
     frames = rrb.Grid(*[rrb.Spatial2DView(origin=f"head{h}", name=f"head {h}") for h in range(n_heads)])
     series = [rrb.TimeSeriesView(origin=f"metrics/{stage}", name=stage)
-              for stage in ("attitude", "detection", "identification", "prediction", "latency")]
-    return rrb.Blueprint(rrb.Horizontal(frames, rrb.Vertical(*series, rrb.TextLogView(origin="log", name="log")),
+              for stage in ("attitude", "detection", "identification", "prediction", "restoration", "latency")]
+    sky = rrb.Spatial3DView(origin="attitude", name="attitude: true vs estimate (ICRS)")
+    gyro = rrb.TimeSeriesView(origin="gyro", name="gyro (deg/s, body)")
+    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(frames, rrb.Horizontal(sky, gyro), row_shares=[2, 1]),
+                                        rrb.Vertical(*series, rrb.TextLogView(origin="log", name="log")),
                                         column_shares=[2, 1]), collapse_panels=True)
 
 
@@ -73,8 +87,40 @@ def open_stream(path: str | os.PathLike, recording_id: str, n_heads: int, name: 
     return rec
 
 
-def log_step(rec, data: StepData) -> None:
-    """Log one step to the recording stream ``rec``: the one place both review paths write Rerun data."""
+AXIS_COLORS = np.array([(230, 40, 40), (40, 200, 40), (60, 90, 255)])
+
+
+def _attitude_arrows(q: np.ndarray, boresights_body: np.ndarray, estimate: bool):
+    """Arrows3D of the body axes and head boresights in ICRS for attitude ``q`` ``[x, y, z, w]`` (ICRS -> body)."""
+    import rerun as rr
+    from scipy.spatial.transform import Rotation
+
+    body_to_icrs = Rotation.from_quat(q).inv()
+    scale = 0.9 if estimate else 1.0
+    vectors = body_to_icrs.apply(np.vstack([np.eye(3), boresights_body])) * scale
+    bore = (150, 150, 150) if estimate else (255, 255, 255)
+    colors = np.vstack([AXIS_COLORS // 2 + 100 if estimate else AXIS_COLORS, [bore] * len(boresights_body)])
+    labels = ["X", "Y", "Z"] + [f"bore{h}" for h in range(len(boresights_body))]
+    return rr.Arrows3D(vectors=vectors, colors=colors, labels=labels, radii=0.01 if estimate else 0.02)
+
+
+def _sky(cameras, q: np.ndarray, layers) -> tuple[np.ndarray, list[str]]:
+    """ICRS unit directions (n, 3) and labels of image points ``layers[h]`` (``Stars2D``) of each head, seen through
+    the calibrated ``cameras`` at attitude ``q`` ``[x, y, z, w]`` (ICRS -> body)."""
+    from scipy.spatial.transform import Rotation
+
+    body_to_icrs = Rotation.from_quat(q).inv()
+    dirs, labels = [np.zeros((0, 3))], []
+    for cam, stars in zip(cameras, layers, strict=True):
+        if len(stars.xy):
+            dirs.append(body_to_icrs.apply(cam.mounting.inv().apply(cam.unproject(stars.xy))))
+            labels += [f"HIP {i}" if i >= 0 else "" for i in stars.ids]
+    return np.vstack(dirs), labels
+
+
+def log_step(rec, data: StepData, cameras=None) -> None:
+    """Log one step to the recording stream ``rec``: the one place both review paths write Rerun data.
+    ``cameras``: the heads' calibrated cameras, for the 3-D attitude view (none: no 3-D view)."""
     import rerun as rr
 
     rec.set_time("frame", sequence=int(data.frame))
@@ -93,13 +139,33 @@ def log_step(rec, data: StepData) -> None:
             rec.log(f"metrics/{stage_of(key)}/{key}", rr.Scalars(float(value)))
     for level, text in data.logs:
         rec.log("log", rr.TextLog(text, level=LEVELS.get(level, "INFO")))
+    if data.heads and cameras is not None:  # not the closing entry of a run stopped by an error
+        bores = np.array([cam.mounting.inv().apply([0.0, 0.0, 1.0]) for cam in cameras]).reshape(-1, 3)
+        rec.log("attitude/true", _attitude_arrows(data.attitude_true, bores, estimate=False))
+        dirs, labels = _sky(cameras, data.attitude_true, [h.truth for h in data.heads])
+        rec.log("attitude/stars/truth", rr.Points3D(dirs, labels=labels, colors=COLORS["truth"], radii=0.006))
+        if data.attitude_estimate is not None:
+            rec.log("attitude/estimate", _attitude_arrows(data.attitude_estimate, bores, estimate=True))
+            dirs, labels = _sky(cameras, data.attitude_estimate, [h.detections for h in data.heads])
+            rec.log("attitude/stars/detections", rr.Points3D(dirs, labels=labels, colors=COLORS["detections"],
+                                                             radii=0.004))
+        else:
+            rec.log("attitude/estimate", rr.Clear(recursive=False))
+            rec.log("attitude/stars/detections", rr.Clear(recursive=False))
+    if len(data.gyro_t):
+        times = rr.TimeColumn("sim_time", duration=np.round(np.asarray(data.gyro_t) * 1e9).astype("timedelta64[ns]"))
+        frames = rr.TimeColumn("frame", sequence=np.full(len(data.gyro_t), int(data.frame)))
+        for axis, values in zip("xyz", np.degrees(np.asarray(data.gyro_rate)).T, strict=True):
+            rec.send_columns(f"gyro/rate_dps/{axis}", indexes=[frames, times],
+                             columns=rr.Scalars.columns(scalars=values))
 
 
-def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike) -> Path:
-    """Build the Rerun recording of an MCAP recording; returns the .rrd path."""
-    from starenv.record.mcap import check_mcap, read_metadata, read_steps
+def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike, on_step=None) -> Path:
+    """Build the Rerun recording of a finished MCAP recording; returns the .rrd path.  ``on_step()`` (optional) is
+    called after each step is logged (a progress bar)."""
+    from starenv.record.mcap import check_finished, read_metadata, read_steps
 
-    mcap_path = check_mcap(mcap_path)
+    mcap_path = check_finished(mcap_path)
     digest = hashlib.sha256()
     with open(mcap_path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -112,8 +178,11 @@ def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike) -> Pa
     name = f"{meta['starenv.scenario']['name']} seed {meta['starenv.run']['seed']}"
     rrd_path = Path(rrd_path)
     rec = open_stream(rrd_path, str(uuid.UUID(bytes=digest.digest()[:16])), n_heads, name)
+    cameras = [h.calibrated for h in scenario_mod.load(tomllib.loads(meta["starenv.scenario"]["toml"])).heads]
     for data in read_steps(mcap_path):
-        log_step(rec, data)
+        log_step(rec, data, cameras)
+        if on_step is not None:
+            on_step()
     rec.flush()
     rec.disconnect()
     return rrd_path
@@ -131,6 +200,7 @@ class RerunRecorder:
     def start(self, env, seed: int, pipeline) -> None:
         sc = env.unwrapped.scenario
         self._sizes = [(h.camera.height, h.camera.width) for h in sc.heads]
+        self._cameras = env.unwrapped.cameras
         self._period_ns = int(round(sc.frame_period_s * 1e9))
         self._last = None
         agents = None if pipeline is None else pipeline.describe()
@@ -141,7 +211,7 @@ class RerunRecorder:
 
     def step(self, log) -> None:
         data = from_step_log(log, self._sizes)
-        log_step(self._rec, data)
+        log_step(self._rec, data, self._cameras)
         self._last = data
 
     def close(self, error: BaseException | None = None) -> None:

@@ -208,6 +208,149 @@ class LegendreField(Distortion):
         return xy + np.stack([b @ np.asarray(self.coeffs_x), b @ np.asarray(self.coeffs_y)], axis=1)
 
 
+class FocalPlaneField(Distortion):
+    """Seed 003's distortion types on the focal plane normalised by the paper's rule: ``x = (u - cx)/s``,
+    ``y = (v - cy)/s`` with ``s`` = half the sensor width in px (1024 for its 2048 px sensor), so the sensor spans
+    about [-1, 1]^2.  A subclass gives the normalised offset ``(dx, dy)`` of an ideal point; the distorted position
+    is ``u + s dx, v + s dy`` (true -> measured, the paper's Eq. 3).  Coefficients are dimensionless (normalised)."""
+
+    def offset(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def distort(self, xy, k):
+        xy = np.asarray(xy, dtype=np.float64)
+        s = k.width / 2.0
+        dx, dy = self.offset((xy[:, 0] - k.cx) / s, (xy[:, 1] - k.cy) / s)
+        return xy + s * np.stack([dx, dy], axis=1)
+
+
+def _coefficients(owner: object, *names: str) -> None:
+    for name in names:
+        checks.finite(f"{type(owner).__name__}.{name}", getattr(owner, name), shape=())
+
+
+@dataclass(frozen=True)
+class Radial(FocalPlaneField):
+    """Radial distortion (seed 003, Eq. 4 with n = 2): ``dx = x (q1 r^2 + q2 r^4)``, ``dy = y (q1 r^2 + q2 r^4)``;
+    barrel for negative, pincushion for positive coefficients."""
+
+    q1: float = 0.0
+    q2: float = 0.0
+
+    def __post_init__(self):
+        _coefficients(self, "q1", "q2")
+
+    def offset(self, x, y):
+        r2 = x * x + y * y
+        f = r2 * (self.q1 + self.q2 * r2)
+        return x * f, y * f
+
+
+@dataclass(frozen=True)
+class Tangential(FocalPlaneField):
+    """Tangential (decentering) distortion (seed 003, Eq. 5): ``dx = p1 (3x^2 + y^2) + 2 p2 x y``,
+    ``dy = 2 p1 x y + p2 (x^2 + 3y^2)``."""
+
+    p1: float = 0.0
+    p2: float = 0.0
+
+    def __post_init__(self):
+        _coefficients(self, "p1", "p2")
+
+    def offset(self, x, y):
+        return (self.p1 * (3 * x * x + y * y) + 2 * self.p2 * x * y,
+                2 * self.p1 * x * y + self.p2 * (x * x + 3 * y * y))
+
+
+@dataclass(frozen=True)
+class ThinPrism(FocalPlaneField):
+    """Thin-prism distortion (seed 003, Eq. 6): ``dx = s1 (x^2 + y^2)``, ``dy = s2 (x^2 + y^2)``."""
+
+    s1: float = 0.0
+    s2: float = 0.0
+
+    def __post_init__(self):
+        _coefficients(self, "s1", "s2")
+
+    def offset(self, x, y):
+        r2 = x * x + y * y
+        return self.s1 * r2, self.s2 * r2
+
+
+@dataclass(frozen=True)
+class Shear(FocalPlaneField):
+    """Shear of the image plane: ``x' = x + tan(phi_x) y``, ``y' = y + tan(phi_y) x`` (angles in rad).
+
+    Seed 003's Eq. 7 reads as a diagonal (scaling) matrix in its text, which is no shear; this is the off-diagonal
+    form its name and Fig. 2 describe."""
+
+    phi_x: float = 0.0
+    phi_y: float = 0.0
+
+    def __post_init__(self):
+        _coefficients(self, "phi_x", "phi_y")
+        if max(abs(self.phi_x), abs(self.phi_y)) >= math.pi / 4:
+            raise ValueError(f"Shear.phi_x and phi_y must be below 45 deg, got {self.phi_x!r}, {self.phi_y!r} rad")
+
+    def offset(self, x, y):
+        return math.tan(self.phi_x) * y, math.tan(self.phi_y) * x
+
+
+@dataclass(frozen=True)
+class Perspective(FocalPlaneField):
+    """Perspective (homography) of the normalised image plane (seed 003, Eqs. 8-9):
+    ``x' = (h11 x + h12 y + h13)/w``, ``y' = (h21 x + h22 y + h23)/w``, ``w = h31 x + h32 y + 1``; ``h`` holds
+    (h11, h12, h13, h21, h22, h23, h31, h32)."""
+
+    h: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        h = checks.finite("Perspective.h", self.h, shape=(8,))
+        object.__setattr__(self, "h", tuple(float(v) for v in h))
+        if abs(h[6]) + abs(h[7]) >= 0.5:
+            raise ValueError(f"Perspective.h31, h32 must keep w = h31 x + h32 y + 1 away from 0 on [-1, 1]^2, "
+                             f"got {float(h[6])!r}, {float(h[7])!r}")
+
+    def offset(self, x, y):
+        h11, h12, h13, h21, h22, h23, h31, h32 = self.h
+        w = h31 * x + h32 * y + 1.0
+        return (h11 * x + h12 * y + h13) / w - x, (h21 * x + h22 * y + h23) / w - y
+
+
+@dataclass(frozen=True)
+class Composite(Distortion):
+    """Distortion models applied in turn (ideal -> the first model -> the second ...); for the small fields of a
+    star sensor this is the superposition of their offsets to first order."""
+
+    models: tuple[Distortion, ...] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "models", tuple(self.models))
+        if not self.models or not all(isinstance(m, Distortion) for m in self.models):
+            raise ValueError("Composite.models must be a non-empty sequence of Distortion models")
+
+    def distort(self, xy, k):
+        out = np.asarray(xy, dtype=np.float64)
+        for model in self.models:
+            out = model.distort(out, k)
+        return out
+
+
+# Seed 003's six types with its Table 3 / Table 4 forms, scaled to the magnitudes its text states (the table values'
+# units are not given and reproduce them in no single unit): about 2 px at the edge of the image for the optical
+# types, about 3 px at most for the image transformations.  Signs: barrel negative, pincushion positive; the ratios
+# p2/p1 ~ 2.0 and s2/s1 ~ 1.3 follow Table 3, phi_y/phi_x ~ 1/45 Table 4, and the homography is Table 4's as given
+# (applied to normalised coordinates, where it peaks at 3.6 px in a corner).
+SEED003_PRESETS: dict[str, FocalPlaneField] = {
+    "barrel": Radial(q1=-1.6e-3, q2=-0.35e-3),
+    "pincushion": Radial(q1=1.6e-3, q2=0.35e-3),
+    "tangential": Tangential(p1=0.4e-3, p2=0.8e-3),
+    "thin_prism": ThinPrism(s1=1.2e-3, s2=1.55e-3),
+    "shear": Shear(phi_x=math.atan(2.9e-3), phi_y=math.atan(2.9e-3 / 45.7)),
+    "perspective": Perspective((0.999, 0.000625, 0.0005, 0.0, 0.999248, 0.0010, 0.0, 0.001250)),
+}
+
+
 @dataclass(frozen=True)
 class Camera:
     """One camera head: resolution, pinhole intrinsics (px), distortion and the body -> camera mounting rotation.

@@ -38,6 +38,7 @@ BAND_TABLE_STEPS = 4096  # sub-pixel phases at which the PSF's pixel fractions a
 # x86 VM (crossover measured between 26 and 76; benchmarks/render_speed.py times both paths).
 SCATTER_AREA_RATIO = 40
 SCATTER_CHUNK = 1 << 21  # (instant, band pixel) terms scattered per np.bincount call, bounding its memory (~40 MB)
+BATCH_BYTES = 1 << 28  # stars are rendered in batches whose estimated working memory stays under this (256 MiB)
 
 
 @dataclass
@@ -204,6 +205,23 @@ class StarRenderer:
         if n == 0:
             empty = StarSignal(np.zeros(0, np.int64), np.zeros(0, np.float32), (cam.height, cam.width))
             return empty, np.zeros(0), np.zeros(0)
+        # Working memory per star: bands and fractions (~6 float64 per instant and band pixel) and ~4 float64
+        # arrays the size of its window; consecutive stars are batched under BATCH_BYTES.
+        n_band = _band_table(float(self.psf_sigma_px)).shape[1]
+        extent = paths.max(axis=1) - paths.min(axis=1) + n_band + 16
+        cost = 48.0 * paths.shape[1] * n_band + 32.0 * extent[:, 0] * extent[:, 1]
+        batch = np.cumsum(cost) // BATCH_BYTES
+        parts = [self._signal_batch(paths[batch == b], weight[batch == b]) for b in np.unique(batch)]
+        if len(parts) == 1:
+            index, values, electrons, peak = parts[0]
+        else:
+            index, values, electrons, peak = (np.concatenate(x) for x in zip(*parts, strict=True))
+        return self._merge(index, values), electrons, peak
+
+    def _signal_batch(self, paths: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`_signal` for one batch of stars: pixel indices and electrons (unmerged), electrons and peaks."""
+        cam = self.camera
+        n = len(paths)
         band, frac = band_fractions(paths, self.psf_sigma_px)
         n_band = frac.shape[-1]
         frac[:, :, 1, :] *= weight[:, None, None]
@@ -228,7 +246,7 @@ class StarRenderer:
             keep = on & (patches > MIN_ELECTRONS)
             indices.append(np.broadcast_to(rows * cam.width + cols, keep.shape)[keep])
             values.append(patches[keep])
-        return self._merge(np.concatenate(indices), np.concatenate(values)), electrons, peak
+        return np.concatenate(indices), np.concatenate(values), electrons, peak
 
     def _merge(self, index: np.ndarray, electrons: np.ndarray) -> StarSignal:
         """Sum the electrons of repeated pixel indices (where star windows overlap) without sorting."""

@@ -29,7 +29,8 @@ Cache
     The parsed full table is kept in memory (a second call in the same process neither reads nor parses the file) and
     on disk as ``hip2-<path hash>.npz`` in :func:`cache_dir` (``$STARENV_CACHE_DIR``, default ``~/.cache/starenv``).
     The disk copy records the source file's size and modification time and is re-parsed when either changes; it is
-    written atomically (temporary name, then ``os.replace``) and an unreadable copy is ignored and rewritten.
+    written atomically (temporary name, then ``os.replace``) with a SHA-256 of its arrays' contents, and a copy that
+    is unreadable, truncated or whose contents do not match that hash is ignored and rewritten.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ import os
 import tempfile
 import warnings
 import zipfile
+import zlib
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -174,29 +176,57 @@ def _disk_cache_file(source: str) -> Path:
 
 
 def _read_disk_cache(file: Path, size: int, mtime_ns: int) -> HipparcosTable | None:
-    """The table stored in ``file`` if it is readable and matches the source's size and mtime, else None."""
+    """The table stored in ``file`` if it is intact and matches the source's size and mtime, else None."""
+    stored = load_npz_checked(file)
     try:
-        with np.load(file, allow_pickle=False) as stored:
-            if (int(stored["format"]), int(stored["source_size"]), int(stored["source_mtime_ns"])) != (
-                _CACHE_FORMAT,
-                size,
-                mtime_ns,
-            ):
-                return None
-            return HipparcosTable(**{field.name: stored[field.name] for field in fields(HipparcosTable)})
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        if stored is None or (int(stored["format"]), int(stored["source_size"]), int(stored["source_mtime_ns"])) != (
+            _CACHE_FORMAT,
+            size,
+            mtime_ns,
+        ):
+            return None
+        return HipparcosTable(**{field.name: stored[field.name] for field in fields(HipparcosTable)})
+    except (ValueError, KeyError, TypeError):
         return None
 
 
+CONTENT_KEY = "content_sha256"  # the entry of a cache .npz holding the hash of its other arrays
+
+
+def content_digest(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 over every array's name, dtype, shape and bytes (in name order)."""
+    digest = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        digest.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        digest.update(a.tobytes())
+    return digest.hexdigest()
+
+
+def load_npz_checked(file: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of a cache file written by :func:`save_npz_atomic`, or None when it is missing, unreadable,
+    truncated or its contents do not match their stored hash (the file handle is closed in every case)."""
+    try:
+        with open(file, "rb") as f, np.load(f, allow_pickle=False) as stored:
+            arrays = {name: stored[name] for name in stored.files}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error):
+        return None
+    expected = arrays.pop(CONTENT_KEY, None)
+    if expected is None or expected.shape != () or str(expected) != content_digest(arrays):
+        return None
+    return arrays
+
+
 def save_npz_atomic(file: Path, arrays: dict[str, np.ndarray], what: str) -> None:
-    """Write ``arrays`` to ``file`` (.npz) under a temporary name, then ``os.replace`` it into place, so a reader
-    never sees half a file; a cache that cannot be written only warns (``what`` names it)."""
+    """Write ``arrays`` and their :func:`content_digest` to ``file`` (.npz) under a temporary name, then
+    ``os.replace`` it into place, so a reader never sees half a file; a cache that cannot be written only warns
+    (``what`` names it)."""
     try:
         file.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(prefix=file.name + ".", suffix=".tmp", dir=file.parent)
         try:
             with os.fdopen(handle, "wb") as out:
-                np.savez(out, **arrays)
+                np.savez(out, **arrays, **{CONTENT_KEY: np.str_(content_digest(arrays))})
             os.replace(temporary, file)
         except BaseException:
             with contextlib.suppress(OSError):

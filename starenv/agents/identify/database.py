@@ -6,7 +6,6 @@ from __future__ import annotations
 import hashlib
 import itertools
 import math
-import zipfile
 from dataclasses import astuple, dataclass, field
 from pathlib import Path
 
@@ -15,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from starenv.agents.identify.geometry import chord, pattern_edges, resolvable
 from starenv.sim.optics import Camera
-from starenv.sim.sky import StarCatalog, cache_dir, save_npz_atomic
+from starenv.sim.sky import StarCatalog, cache_dir, load_npz_checked, save_npz_atomic
 
 METHOD_VERSION = 1  # bump when the database layout or its construction changes
 N_SIGMA = 3.0  # edge tolerance in standard deviations of an edge's angle
@@ -160,22 +159,22 @@ def _database_file(settings: DatabaseSettings, hip: np.ndarray, unit: np.ndarray
 def _read_database(file: Path, identity: str, n_stars: int) -> tuple[np.ndarray, ...] | None:
     """Patterns, keys and largest edges stored in ``file`` if it is readable, complete and for ``identity``; else
     None."""
+    stored = load_npz_checked(file)  # None unless intact: its contents match the hash stored with them
     try:
-        with np.load(file, allow_pickle=False) as stored:
-            patterns, keys, largest_edge = (stored[name] for name in _TABLES)
-            ok = (
-                str(stored["identity"]) == identity
-                and patterns.dtype == np.int32
-                and keys.dtype == np.int64
-                and largest_edge.dtype == np.float32
-                and patterns.shape == (len(keys), 4)
-                and largest_edge.shape == keys.shape
-                and (len(keys) == 0 or (patterns.min() >= 0 and patterns.max() < n_stars))
-                and bool(np.all(keys[1:] >= keys[:-1]))
-            )
-            return (patterns, keys, largest_edge) if ok else None
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        patterns, keys, largest_edge = (stored[name] for name in _TABLES)
+        ok = (
+            str(stored["identity"]) == identity
+            and patterns.dtype == np.int32
+            and keys.dtype == np.int64
+            and largest_edge.dtype == np.float32
+            and patterns.shape == (len(keys), 4)
+            and largest_edge.shape == keys.shape
+            and (len(keys) == 0 or (patterns.min() >= 0 and patterns.max() < n_stars))
+            and bool(np.all(keys[1:] >= keys[:-1]))
+        )
+    except (TypeError, KeyError, ValueError):
         return None
+    return (patterns, keys, largest_edge) if ok else None
 
 
 def _write_database(file: Path, identity: str, tables: tuple[np.ndarray, ...]) -> None:
@@ -188,7 +187,8 @@ def load_database(catalog: StarCatalog, settings: DatabaseSettings) -> PatternDa
     """The pattern database of ``catalog``'s stars down to ``settings.mag_limit``, from disk or built (and stored).
 
     The cache file lives in ``starenv.sim.sky.cache_dir() / "identify"``, named by a hash of the method version, the
-    catalogue (HIP numbers, positions, epoch) and ``settings``; an unreadable or foreign file is rebuilt.
+    catalogue (HIP numbers, positions, epoch) and ``settings``; an unreadable, truncated, altered (its content hash
+    does not match) or foreign file is rebuilt.
     """
     bright = catalog.magnitude <= settings.mag_limit
     hip, unit = catalog.hip[bright], catalog.unit[bright]

@@ -21,8 +21,8 @@ default 2 sigma of the calibrated spot, the radius holding 86 % of its light; ``
 The network proposes the library star whose sides are nearest the image's, so a wrong triangle (a neighbour outside
 the field, a missing or false star) often verifies too: the verified stars of all heads must then agree pairwise
 (body-frame angle vs catalogue angle within ``eta``), the star with most disagreements dropped until all agree, and
-fewer than three agreeing stars count as none (two stars check each other once, too weakly).  This consensus is
-ours; the paper verifies triangles only.
+fewer than four agreeing stars count as none (three stars of one image triangle agree with each other exactly when
+their triangle verified: no new check).  This consensus is ours; the paper verifies triangles only.
 
 Stage 3, across heads.  With two or more verified stars the attitude (SVD solution of Wahba's problem) gives each
 head's boresight; library stars within ``R_FOV + xi`` of it (``R_FOV`` the head's half-diagonal, ``xi`` 3 deg, the
@@ -53,7 +53,7 @@ from starenv.sim.sky import StarCatalog
 
 CODE_BITS = 13  # the paper's 13-bit star number (2^13 = 8192 >= its 6970 stars)
 NEWGRNN_SCALE = 0.8326  # sqrt(-ln 0.5): MATLAB newgrnn's weight is 0.5 at a distance of one spread
-MIN_CONSENSUS = 3  # verified stars that must agree pairwise before any is trusted
+MIN_CONSENSUS = 4  # verified stars that must agree pairwise before any is trusted
 KERNEL_REACH = 3.0  # training samples farther than this many spreads are left out (weight < 2e-3)
 
 
@@ -98,17 +98,25 @@ class Grnn:
     def __init__(self, inputs: np.ndarray, targets: np.ndarray, spread: float):
         self.spread = checks.in_range("rho", spread, 0.0, 10.0, low_open=True, unit="deg")
         inputs = np.asarray(inputs, dtype=np.float64)
-        self.inputs = inputs.reshape(len(inputs), -1)
-        self.bits = code_bits(targets)
-        self.tree = cKDTree(self.inputs)
+        inputs = inputs.reshape(len(inputs), -1)
+        order = np.argsort(inputs[:, 0], kind="stable")  # 1-D inputs: a sorted array is the index
+        self.inputs, self.bits = inputs[order], code_bits(np.asarray(targets)[order])
+        self.tree = cKDTree(self.inputs) if inputs.shape[1] > 1 else None
 
     def outputs(self, x: np.ndarray) -> np.ndarray:
         """Network outputs (q, 13) for inputs ``x`` (q, d)."""
         x = np.asarray(x, dtype=np.float64).reshape(-1, self.inputs.shape[1])
+        reach = KERNEL_REACH * self.spread
+        if self.tree is None:
+            lo = np.searchsorted(self.inputs[:, 0], x[:, 0] - reach)
+            hi = np.searchsorted(self.inputs[:, 0], x[:, 0] + reach, side="right")
+            near = [slice(a, b) for a, b in zip(lo, hi, strict=True)]
+        else:
+            near = self.tree.query_ball_point(x, reach)
         out = np.full((len(x), CODE_BITS), np.nan)
-        for i, rows in enumerate(self.tree.query_ball_point(x, KERNEL_REACH * self.spread)):
-            if rows:
-                d = np.linalg.norm(self.inputs[rows] - x[i], axis=1)
+        for i, rows in enumerate(near):
+            d = np.linalg.norm(self.inputs[rows] - x[i], axis=1)
+            if len(d):
                 a = np.exp(-((NEWGRNN_SCALE * d / self.spread) ** 2))
                 out[i] = a @ self.bits[rows] / a.sum()
         return out
@@ -268,7 +276,7 @@ class GrnnIdentifier:
     def correct(self, stars, cameras, verified) -> list[np.ndarray]:
         """Stage 3: detections left unidentified in any head matched to library stars near their head's boresight
         by their angles to the verified stars (module docstring); needs two verified stars (the consensus of stage 2
-        leaves three or none)."""
+        leaves four or none)."""
         lib = self.library
         out = [r.copy() for r in verified]
         ref_body = np.concatenate([cam.mounting.inv().apply(cam.unproject(s.xy[r >= 0]))

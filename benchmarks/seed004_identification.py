@@ -25,6 +25,7 @@ from starenv.agents.base import StarMeasurements
 from starenv.agents.identify.grnn import Grnn, GrnnIdentifier, TriangleLibrary
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
 from starenv.agents.identify.tracking import TrackingIdentifier
+from starenv.agents.identify.triangle import TriangleIdentifier
 from starenv.datasets.star_fields import centroid_set, random_attitude
 from starenv.datasets.triangles import noisy_three_sides
 from starenv.sim.conventions import ARCSEC
@@ -206,9 +207,10 @@ def main(argv=None) -> None:
         fig.savefig(args.plot, dpi=120)
 
     methods = {"GRNN, P (paper)": GrnnIdentifier(feature="p"), "GRNN, sides": GrnnIdentifier(feature="sides"),
-               "lost in space": LostInSpaceIdentifier(), "tracking, compass prior 2 deg": TrackingIdentifier()}
+               "triangle": TriangleIdentifier(), "lost in space": LostInSpaceIdentifier(),
+               "tracking, compass prior 2 deg": TrackingIdentifier()}
     for name, ident in methods.items():
-        ident.reset(cameras, nav if name.startswith("GRNN") else onboard)
+        ident.reset(cameras, nav if name.startswith(("GRNN", "triangle")) else onboard)
     data = samples(nav, cameras, args.samples, 0.07, seed=1)
     res = run_methods(methods, cameras, data)
     print(f"## {args.samples} random attitudes, 0.07 px\n")

@@ -47,21 +47,18 @@ Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
   ``xy_end`` (n, 2) px (distorted pixel coordinates; mid-exposure position, trail centroid, trail ends),
   ``electrons`` and ``peak_electrons`` (e-; total and brightest pixel), ``detectable`` bool.
 * ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int,
-  ``available`` bool, ``within_threshold`` bool (error < ``availability_threshold_arcsec``), ``attitude`` (None when
-  unavailable) ``{"total_arcsec": float, "heads": [{"pitch_arcsec", "yaw_arcsec", "roll_arcsec",
-  "cross_boresight_arcsec"}]}`` (arcsec; the error rotation in each head's camera frame: pitch about +X, yaw about
-  +Y, roll about the boresight +Z, absolute values), ``heads`` a list per head of star scores (None where the action
-  gave nothing to score): ``centroid_error_px_mean`` / ``centroid_error_px_max`` (px, detections matched to true
-  trail centroids within 3 px), ``detection_recall`` / ``detection_precision`` (0-1), ``id_rate`` (correct ids /
-  detectable stars, 0-1), ``false_id_rate`` (wrong / claimed, 0-1), ``ids_correct`` / ``ids_wrong`` (counts),
-  ``solved`` (>= 3 correct ids and none wrong), ``prediction_error_px_mean`` / ``prediction_error_px_max`` (px,
-  predicted vs true mid-exposure positions), ``predictions_scored`` (count), and with a distortion corrector's
+  ``available`` bool, ``within_threshold`` bool (error < ``availability_threshold_arcsec``), ``attitude`` (empty when
+  unavailable, so that vector envs can merge the infos) ``{"total_arcsec": float, "heads": [{"pitch_arcsec",
+  "yaw_arcsec", "roll_arcsec", "cross_boresight_arcsec"}]}`` (arcsec; the error rotation in each head's camera frame:
+  pitch about +X, yaw about +Y, roll about the boresight +Z, absolute values), ``heads`` a list per head of star scores
+  (None where the action gave nothing to score): ``centroid_error_px_mean`` / ``centroid_error_px_max`` (px, detections
+  matched to true trail centroids within 3 px), ``detection_recall`` / ``detection_precision`` (0-1), ``id_rate``
+  (correct ids / detectable stars, 0-1), ``false_id_rate`` (wrong / claimed, 0-1), ``ids_correct`` / ``ids_wrong``
+  (counts), ``solved`` (>= 3 correct ids and none wrong), ``prediction_error_px_mean`` / ``prediction_error_px_max``
+  (px, predicted vs true mid-exposure positions), ``predictions_scored`` (count), and with a distortion corrector's
   ``corrected_xy`` in the action ``correction_error_px_mean`` / ``correction_error_x_px`` / ``correction_error_y_px``
   (px, corrected positions vs where the calibrated camera puts the matched true stars; mean length and mean
   per-axis size) and ``distortion_px_mean`` (px, the true offset's mean length on those stars).
-
-Known limit: in a Gymnasium vector env, a step where one sub-env's estimate is available and another's is not fails
-while the vector env merges the infos (``scores["attitude"]`` is a dict in one and None in the other).
 """
 
 from __future__ import annotations
@@ -251,7 +248,7 @@ class StarSensorEnv(gym.Env):
     def _score(self, action: dict, frame: Frame) -> dict:
         mountings = [h.camera.mounting for h in self.scenario.heads]
         available = action["attitude"] is not None
-        att = attitude_error(Rotation.from_quat(action["attitude"]), frame.attitude, mountings) if available else None
+        att = attitude_error(Rotation.from_quat(action["attitude"]), frame.attitude, mountings) if available else {}
         heads = []
         for i, h in enumerate(frame.heads):
             spec = self.scenario.heads[i]

@@ -164,10 +164,10 @@ def flatten(scores: dict, latency_s: dict[str, float] | None = None) -> dict[str
         "frame": scores["frame"],
         "available": float(scores["available"]),
         "within_threshold": float(scores["within_threshold"]),
-        "attitude_error_arcsec": None if att is None else att["total_arcsec"],
-        "cross_boresight_error_arcsec": None if att is None else float(np.mean([h["cross_boresight_arcsec"]
-                                                                              for h in att["heads"]])),
-        "roll_error_arcsec": None if att is None else float(np.mean([h["roll_arcsec"] for h in att["heads"]])),
+        "attitude_error_arcsec": att["total_arcsec"] if att else None,
+        "cross_boresight_error_arcsec": float(np.mean([h["cross_boresight_arcsec"] for h in att["heads"]]))
+        if att else None,
+        "roll_error_arcsec": float(np.mean([h["roll_arcsec"] for h in att["heads"]])) if att else None,
     }
     heads = scores["heads"]
     for key in ("centroid_error_px_mean", "detection_recall", "detection_precision", "id_rate", "false_id_rate",

@@ -61,12 +61,29 @@ def test_whole_episode_stays_inside_the_time_bounds():
 
 
 def available(envs, seed: int) -> dict:
-    """A sampled batched action with every sub-env's estimate marked available: Gymnasium's vector envs cannot merge
-    ``info["scores"]["attitude"]`` when it is a dict in one sub-env and None (unavailable) in another."""
+    """A sampled batched action with every sub-env's estimate marked available."""
     envs.action_space.seed(seed)
     action = envs.action_space.sample()
     action["attitude_valid"][:] = 1
     return action
+
+
+@pytest.mark.parametrize("valid", [(1, 0), (0, 1)])
+def test_a_vector_env_merges_available_and_unavailable_steps(valid):
+    """One sub-env scored, the other not, in either order: the infos merge (an unavailable step's attitude scores
+    are empty, not None) and each sub-env's scores are its own."""
+    envs = gym.make_vec("StarEnv/Scenario-v0", num_envs=2, vectorization_mode="sync", scenario="paper_000",
+                        overrides=SMALL)
+    envs.reset(seed=3)
+    action = available(envs, 2)
+    action["attitude_valid"][:] = valid
+    _, _, _, _, info = envs.step(action)
+    scores = info["scores"]
+    assert scores["available"].tolist() == [bool(v) for v in valid]
+    scored = valid.index(1)
+    assert scores["attitude"]["_total_arcsec"].tolist() == [i == scored for i in range(2)]
+    assert scores["attitude"]["total_arcsec"][scored] > 0
+    envs.close()
 
 
 def test_image_wrapper_in_a_vector_env():

@@ -92,7 +92,7 @@ def encode_scores(frame: int, time_s: float, source: str, scores: dict, record: 
     msg = c["StepScores"](frame=int(frame), time_s=float(time_s), source=source,
                           available=bool(scores["available"]), within_threshold=bool(scores["within_threshold"]))
     att = scores.get("attitude")
-    if att is not None:
+    if att:  # empty (or None in older callers) when the step had no estimate
         msg.attitude.total_arcsec = att["total_arcsec"]
         for h in att["heads"]:
             msg.attitude.heads.add(**{k: h[k] for k in HEAD_ATTITUDE_FIELDS})
@@ -115,7 +115,7 @@ def encode_scores(frame: int, time_s: float, source: str, scores: dict, record: 
 
 def decode_scores(msg) -> tuple[dict, dict]:
     """(scores, record) back from a ``StepScores`` message: the inverse of :func:`encode_scores`."""
-    att = None
+    att = {}
     if msg.HasField("attitude"):
         att = {"total_arcsec": msg.attitude.total_arcsec,
                "heads": [{k: getattr(h, k) for k in HEAD_ATTITUDE_FIELDS} for h in msg.attitude.heads]}

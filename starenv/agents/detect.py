@@ -81,6 +81,12 @@ def _box(index: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return np.stack([np.clip(y + dy, 0, height - 1) * width + np.clip(x + dx, 0, width - 1) for dy, dx in BOX])
 
 
+def _unique(values: np.ndarray) -> np.ndarray:
+    """The sorted distinct values of an integer array (numpy's own unique hashes, slower on a few thousand)."""
+    values = np.sort(values, axis=None)
+    return values[np.r_[True, values[1:] != values[:-1]]] if len(values) else values
+
+
 def _pixel_fractions(sigma_px: float) -> tuple[float, float]:
     """Fractions of a 1-D Gaussian (sigma in px) centred on a pixel that fall in that pixel and in one neighbour."""
     centre = erf(0.5 / (math.sqrt(2.0) * sigma_px))
@@ -104,6 +110,29 @@ def _least_median_ratio(sigma_px: float) -> float:
     return least
 
 
+class _Psf:
+    """What follows from a Gaussian PSF sigma (px): the matched filter and its noise gain, the sharpness limits and
+    the window margin."""
+
+    def __init__(self, sigma_px: float, matched_filter: bool, window_margin_px: int | None):
+        self.sigma_px = sigma_px
+        # The pixel-integrated PSF has variance sigma^2 + 1/12 px^2 at the pixel centres.
+        self.sigma_eff = math.sqrt(sigma_px**2 + 1.0 / 12.0)
+        self.radius_px = math.ceil(3.0 * self.sigma_eff)
+        self.kernel = cv2.getGaussianKernel(2 * self.radius_px + 1, self.sigma_eff, cv2.CV_32F)
+        # Noise of the smoothed image per unit pixel noise: the root of the sum of the 2-D kernel's squares.
+        self.filter_noise = float(np.sum(self.kernel.astype(np.float64) ** 2)) if matched_filter else 1.0
+        self.margin_px = math.ceil(2.0 * sigma_px) if window_margin_px is None else window_margin_px
+        # Sharpness: light in the 8 neighbours of the peak pixel per unit peak for a PSF centred on the pixel, halved.
+        centre, neighbour = _pixel_fractions(sigma_px)
+        self.min_neighbour_ratio = 0.5 * ((centre + 2.0 * neighbour) ** 2 / centre**2 - 1.0)
+        # Spikes: the least ratio of a PSF pixel's 3 x 3 median to its value.
+        self.median_ratio = _least_median_ratio(sigma_px)
+        rho = neighbour / centre
+        # Track test: light in the two pixels beside a centred PSF's peak, per unit peak, along PAIR_STEPS.
+        self.pair_ratio = np.array([2.0 * rho, 2.0 * rho**2, 2.0 * rho, 2.0 * rho**2])
+
+
 class CentroidDetector:
     """Finds stars on a frame (integer DN, or float such as a restored one) and centroids them (a
     :class:`~starenv.agents.base.StarDetector`).
@@ -112,7 +141,8 @@ class CentroidDetector:
 
     * ``method``: ``"cog"``, ``"iwcog"`` or ``"gaussian"`` (see the module docstring).
     * ``threshold_sigma``: detection threshold, in noise sigmas of the (smoothed) background-subtracted image.
-    * ``psf_sigma_px``: Gaussian PSF sigma (px) that the matched filter, the sharpness tests and the fit assume.
+    * ``psf_sigma_px``: Gaussian PSF sigma (px) that the matched filter, the sharpness tests and the fit assume;
+      None (the default): the spot size the camera model carries (``camera.psf_sigma_px``).
     * ``matched_filter``: smooth with the PSF-matched Gaussian before thresholding (finds fainter stars).
     * ``tile_px``: background tile size (px); smaller follows steeper gradients, larger is less noisy.
     * ``clip_sigma``: sigma-clipping limit of the background statistics.
@@ -126,14 +156,14 @@ class CentroidDetector:
       is a full-scale code ``2^n - 1`` (n = 8 .. 16), else none.
     * ``max_stars``: report at most this many stars (the brightest); None: all.
 
-    The options fit a sensor: ``psf_sigma_px`` should be the head's PSF sigma (the scenario's ``psf_sigma_px``).
+    The constants that follow from a PSF sigma (matched filter, sharpness limits) are computed once per sigma.
     """
 
     def __init__(
         self,
         method: str = "iwcog",
         threshold_sigma: float = 5.0,
-        psf_sigma_px: float = 1.0,
+        psf_sigma_px: float | None = None,
         matched_filter: bool = True,
         tile_px: int = 32,
         clip_sigma: float = 3.0,
@@ -150,48 +180,48 @@ class CentroidDetector:
             raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
         self.method = method
         self.threshold_sigma = checks.in_range("threshold_sigma", threshold_sigma, 0.0, 100.0, low_open=True)
-        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.2, 20.0, unit="px")
+        self.psf_sigma_px = (
+            None if psf_sigma_px is None else checks.in_range("psf_sigma_px", psf_sigma_px, 0.2, 20.0, unit="px")
+        )
         self.matched_filter = _flag("matched_filter", matched_filter)
         self.tile_px = checks.integer("tile_px", tile_px, 8, 4096)
         self.clip_sigma = checks.in_range("clip_sigma", clip_sigma, 1.5, 10.0)
         self.min_area_px = checks.integer("min_area_px", min_area_px, 1, 10**8)
         self.max_area_px = checks.integer("max_area_px", max_area_px, self.min_area_px, 10**8)
         self.deblend_contrast = checks.in_range("deblend_contrast", deblend_contrast, 0.0, 1.0, low_open=True)
-        margin = math.ceil(2.0 * self.psf_sigma_px) if window_margin_px is None else window_margin_px
-        self.window_margin_px = checks.integer("window_margin_px", margin, 0, 100)
+        self.window_margin_px = (
+            None if window_margin_px is None else checks.integer("window_margin_px", window_margin_px, 0, 100)
+        )
         self.reject_sharp = _flag("reject_sharp", reject_sharp)
         self.keep_edge = _flag("keep_edge", keep_edge)
         self.saturation_dn = None if saturation_dn is None else checks.integer("saturation_dn", saturation_dn, 1, 65535)
         self.max_stars = None if max_stars is None else checks.integer("max_stars", max_stars, 1, 10**8)
 
-        # The pixel-integrated PSF has variance sigma^2 + 1/12 px^2 at the pixel centres.
-        self._sigma_eff = math.sqrt(self.psf_sigma_px**2 + 1.0 / 12.0)
-        self._radius_px = math.ceil(3.0 * self._sigma_eff)
-        self._kernel = cv2.getGaussianKernel(2 * self._radius_px + 1, self._sigma_eff, cv2.CV_32F)
-        # Noise of the smoothed image per unit pixel noise: the root of the sum of the 2-D kernel's squares.
-        self._filter_noise = float(np.sum(self._kernel.astype(np.float64) ** 2)) if self.matched_filter else 1.0
-        # Sharpness: light in the 8 neighbours of the peak pixel per unit peak for a PSF centred on the pixel, halved.
-        centre, neighbour = _pixel_fractions(self.psf_sigma_px)
-        self._min_neighbour_ratio = 0.5 * ((centre + 2.0 * neighbour) ** 2 / centre**2 - 1.0)
-        # Spikes: the least ratio of a PSF pixel's 3 x 3 median to its value.
-        self._median_ratio = _least_median_ratio(self.psf_sigma_px)
-        rho = neighbour / centre
-        # Track test: light in the two pixels beside a centred PSF's peak, per unit peak, along PAIR_STEPS.
-        self._pair_ratio = np.array([2.0 * rho, 2.0 * rho**2, 2.0 * rho, 2.0 * rho**2])
+        self._psf_constants: dict[float, _Psf] = {}
+
+    def _psf(self, camera: Camera) -> _Psf:
+        """The constants that follow from the PSF sigma in force (this detector's, else the camera's)."""
+        sigma = float(self.psf_sigma_px if self.psf_sigma_px is not None else camera.psf_sigma_px)
+        if sigma not in self._psf_constants:
+            if not 0.2 <= sigma <= 20.0:
+                raise ValueError(f"psf_sigma_px must be in [0.2, 20] px, got the camera's {sigma}")
+            self._psf_constants[sigma] = _Psf(sigma, self.matched_filter, self.window_margin_px)
+        return self._psf_constants[sigma]
 
     def detect(self, image: np.ndarray, camera: Camera) -> StarMeasurements:
         """Stars on ``image`` (DN, integer or float such as a restored frame; shape (camera.height, camera.width)),
         brightest first: positions (px) and flux (DN above background)."""
         data = self._checked(image, camera)
+        psf = self._psf(camera)
         height, width = data.shape
         level, noise = self.background(data)
-        resid = data - level
-        removed = self._clean_spikes(resid, noise) if self.reject_sharp else None
-        smooth = cv2.sepFilter2D(resid, cv2.CV_32F, self._kernel, self._kernel, borderType=cv2.BORDER_REFLECT)
+        resid = np.subtract(data, level, out=data)
+        removed = self._clean_spikes(resid, noise, psf) if self.reject_sharp else None
+        smooth = cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, borderType=cv2.BORDER_REFLECT)
         signal = smooth if self.matched_filter else resid
-        limit = noise * np.float32(self.threshold_sigma * self._filter_noise)
+        limit = np.multiply(noise, np.float32(self.threshold_sigma * psf.filter_noise))
         above = signal > limit
-        n_label, labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+        n_label, labels = cv2.connectedComponentsWithAlgorithm(above.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_SAUF)
         pixel = np.flatnonzero(above.ravel())
         component = labels.ravel()[pixel]
         area = np.bincount(component, minlength=n_label)
@@ -200,14 +230,20 @@ class CentroidDetector:
             return StarMeasurements(np.zeros((0, 2)))
         if len(kept) >= MAX_LABELS:
             raise ValueError(f"{len(kept)} blobs above the threshold: raise threshold_sigma or min_area_px")
-        lut = np.zeros(n_label, np.float32)
+        # Blob labels 1 .. n, 0 elsewhere; deblending makes at most one blob per pixel, and OpenCV dilates 16-bit
+        # images faster than float ones.
+        dtype = np.uint16 if len(pixel) < 2**16 else np.float32
+        lut = np.zeros(n_label, dtype)
         lut[kept] = np.arange(1, len(kept) + 1)
-        core = np.zeros(height * width, np.float32)  # blob labels 1 .. n, 0 elsewhere
+        core = np.zeros(height * width, dtype)
         core[pixel] = lut[component]
         core = core.reshape(height, width)
-        n = self._deblend(core, signal, limit, len(kept)) if self.deblend_contrast < 1.0 else len(kept)
+        if self.deblend_contrast < 1.0:
+            n = self._deblend(core, pixel[lut[component] > 0], signal, limit, len(kept))
+        else:
+            n = len(kept)
         grown = core
-        if m := self.window_margin_px:
+        if m := psf.margin_px:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
             grown = cv2.dilate(core, disk)
             np.copyto(grown, core, where=core > 0)
@@ -220,7 +256,7 @@ class CentroidDetector:
             touching = (x <= m) | (y <= m) | (x >= width - 1 - m) | (y >= height - 1 - m)
             good &= np.bincount(blobs.label[c], touching, n) == 0
         if self.reject_sharp:
-            good &= self._not_sharp(blobs, resid, noise) & ~self._track_remnant(grown, n, removed, blobs.flux)
+            good &= self._not_sharp(blobs, resid, noise, psf) & ~self._track_remnant(grown, n, removed, blobs.flux)
 
         streak = blobs.mask_anisotropy() > STREAK_ANISOTROPY_PX2
         xy = blobs.centroid(blobs.positive)
@@ -233,14 +269,15 @@ class CentroidDetector:
             if saturation is not None:
                 saturated = np.bincount(blobs.label, image.ravel()[blobs.pixel] >= saturation, n) > 0
             fit = np.flatnonzero(good & ~streak & ~saturated)
-            xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit])
+            xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit], psf)
         order = np.flatnonzero(good)[np.argsort(-blobs.flux[good], kind="stable")][: self.max_stars]
         return StarMeasurements(xy[order], blobs.flux[order])
 
     def background(self, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Local background level and noise (DN) of a float32 image, both float32 (H, W): on tiles of about
-        ``tile_px``, the sigma-clipped mean of the pixels and the sigma-clipped standard deviation of differences
-        between neighbouring pixels (over sqrt 2), interpolated bilinearly between the tile centres."""
+        ``tile_px``, the sigma-clipped mean of a quarter of the pixels and the sigma-clipped standard deviation of
+        differences between neighbouring pixels (over sqrt 2) on a quarter of the rows, interpolated bilinearly
+        between the tile centres."""
         height, width = data.shape
         ny, nx = max(1, round(height / self.tile_px)), max(1, round(width / self.tile_px))
         th, tw = -(-height // ny), -(-width // nx)
@@ -250,12 +287,13 @@ class CentroidDetector:
             cols = np.r_[0 : (nx - 1) * tw, width - tw : width]
             data = data[np.ix_(rows, cols)]
         tiles = data.reshape(ny, th, nx, tw)
-        # Level from a checkerboard of pixels (centred on the tile, as a gradient needs); noise from differences of
-        # horizontal neighbours (blind to gradients) on every third row.  Both as (tiles, values) arrays.
+        # Level from a quarter of the pixels, every other one on every other row, the rows alternating between the
+        # even and the odd columns (a sample centred on the tile, as a gradient needs); noise from differences of
+        # horizontal neighbours (blind to gradients) on every fourth row.  Both as (tiles, values) arrays.
         level_sample = np.concatenate(
-            [tiles[:, i::2, :, i::2].transpose(0, 2, 1, 3).reshape(ny * nx, -1) for i in (0, 1)], axis=1
+            [tiles[:, i::4, :, j::2].transpose(0, 2, 1, 3).reshape(ny * nx, -1) for i, j in ((0, 0), (3, 1))], axis=1
         )
-        rows = tiles[:, ::3].transpose(0, 2, 1, 3)
+        rows = tiles[:, 1::4].transpose(0, 2, 1, 3)
         centre, _, count = self._clipped_mean_std(level_sample)
         _, spread, _ = self._clipped_mean_std((rows[..., 1:] - rows[..., :-1]).reshape(ny * nx, -1))
         scale = np.maximum(spread / math.sqrt(2.0), QUANTISATION_NOISE_DN)
@@ -274,15 +312,14 @@ class CentroidDetector:
                 index[axis] = n - 1
                 grid[tuple(index)] = before + (last - before) * (step / (size - (n - 1) * step))
         grid = np.pad(grid, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd").astype(np.float32)
+        # The level a view into its padded map (a row-strided array; numpy and OpenCV take it without a copy).
         level, noise = (
-            np.ascontiguousarray(
-                cv2.resize(grid[..., k], ((nx + 2) * tw, (ny + 2) * th), interpolation=cv2.INTER_LINEAR)[
-                    th : th + height, tw : tw + width
-                ]
-            )
+            cv2.resize(grid[..., k], ((nx + 2) * tw, (ny + 2) * th), interpolation=cv2.INTER_LINEAR)[
+                th : th + height, tw : tw + width
+            ]
             for k in (0, 1)
         )
-        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN), out=noise)
+        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN))
 
     def _clipped_mean_std(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Mean, standard deviation and count of each row of ``values`` (float32) within +- ``clip_sigma``
@@ -329,7 +366,7 @@ class CentroidDetector:
         top = int(image.max())
         return top if top >= 255 and (top + 1) & top == 0 else None
 
-    def _clean_spikes(self, resid: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _clean_spikes(self, resid: np.ndarray, noise: np.ndarray, psf: _Psf) -> tuple[np.ndarray, np.ndarray]:
         """Replace, in place, spikes (hot pixels, cosmic-ray hits and tracks, alone or on a star) by the median of
         their 3 x 3 neighbourhood; return their flat indices and the DN taken off each.
 
@@ -339,7 +376,7 @@ class CentroidDetector:
         neighbourhoods.  Only pixels whose scaled value alone passes the first test are examined.
         """
         flat, noise_flat = resid.ravel(), noise.ravel()
-        gain = SPIKE_MARGIN * self._median_ratio
+        gain = SPIKE_MARGIN * psf.median_ratio
         unit = math.hypot(gain, MEDIAN_NOISE)
 
         def excess(index, median):
@@ -352,7 +389,7 @@ class CentroidDetector:
         first = candidate[is_spike]
         original = flat[first].astype(np.float64)
         flat[first] = median[is_spike]
-        near = np.unique(_box(first, resid.shape))
+        near = _unique(_box(first, resid.shape))
         median = np.median(flat[_box(near, resid.shape)], axis=0)
         was_first = np.isin(near, first)
         is_spike = was_first | (excess(near, median) > SPIKE_GROW_SIGMA)
@@ -362,12 +399,12 @@ class CentroidDetector:
         flat[index] = median[is_spike]
         return index, before - flat[index]
 
-    def _deblend(self, core: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int) -> int:
-        """Split blobs of ``core`` (float32 labels 1 .. n, 0 elsewhere) holding several significant maxima of
-        ``signal``; relabels ``core`` in place and returns the new number of blobs."""
+    def _deblend(self, core: np.ndarray, pixel: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int) -> int:
+        """Split blobs of ``core`` (labels 1 .. n, 0 elsewhere; ``pixel``: the sorted flat indices of its blob
+        pixels) holding several significant maxima of ``signal``; relabels ``core`` in place and returns the new
+        number of blobs."""
         height, width = core.shape
         core_flat, value = core.ravel(), signal.ravel()
-        pixel = np.flatnonzero(core_flat > 0)
         label = core_flat[pixel].astype(np.intp)
         y, x = np.divmod(pixel, width)
         # Steepest ascent: each pixel points to its highest 8-neighbour in the same blob (itself if none is higher).
@@ -399,11 +436,29 @@ class CentroidDetector:
         low_basin, high_basin = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
         key = low_basin * len(pixel) + high_basin
         order = np.lexsort((-pairs[:, 2], key))
-        _, first = np.unique(key[order], return_index=True)
-        pairs = pairs[order[first]]
+        key = key[order]
+        pairs = pairs[order[np.r_[True, key[1:] != key[:-1]]]]
+        pairs = pairs[np.argsort(-pairs[:, 2], kind="stable")]
         height_at = value[pixel]
         rise_needed = np.maximum(limit.ravel()[pixel], self.deblend_contrast * height_at)
+        a, b = pairs[:, 0].astype(np.intp), pairs[:, 1].astype(np.intp)
+
+        # Highest saddles first: the lower of the two maxima merges into the higher unless it rises enough.  A
+        # maximum's first saddle in that order is its highest, and nothing has joined it yet: where the maximum on
+        # the other side is higher, that saddle alone decides, so those merges are made at once and only the
+        # saddles between what is left go through the loop (same result as the loop over all saddles).
+        end, partner = np.concatenate([a, b]), np.concatenate([b, a])
+        first = np.lexsort((np.tile(np.arange(len(a)), 2), end))
+        first = first[np.r_[True, end[first][1:] != end[first][:-1]]]
+        end, partner, saddle = end[first], partner[first], np.tile(pairs[:, 2], 2)[first]
+        merge = (height_at[end] < height_at[partner]) & (height_at[end] - saddle < rise_needed[end])
         basin = np.arange(len(pixel))
+        basin[end[merge]] = partner[merge]
+        while not np.array_equal(basin[basin], basin):
+            basin = basin[basin]
+        rest = basin[a] != basin[b]
+        basin = basin.tolist()
+        heights, needed = height_at.tolist(), rise_needed.tolist()
 
         def root(k):
             while basin[k] != k:
@@ -411,13 +466,13 @@ class CentroidDetector:
                 k = basin[k]
             return k
 
-        # Highest saddles first: the lower of the two maxima merges into the higher unless it rises enough.
-        for a, b, saddle in pairs[np.argsort(-pairs[:, 2], kind="stable")]:
-            ra, rb = root(int(a)), root(int(b))
-            if ra != rb:
-                low, high = (ra, rb) if height_at[ra] < height_at[rb] else (rb, ra)
-                if height_at[low] - saddle < rise_needed[low]:
+        for i, j, level in zip(a[rest].tolist(), b[rest].tolist(), pairs[rest, 2].tolist(), strict=True):
+            ri, rj = root(i), root(j)
+            if ri != rj:
+                low, high = (ri, rj) if heights[ri] < heights[rj] else (rj, ri)
+                if heights[low] - level < needed[low]:
                     basin[low] = high
+        basin = np.array(basin)
         while not np.array_equal(basin[basin], basin):
             basin = basin[basin]
         # A new label for each surviving maximum of a split blob; then labels 1 .. n again.
@@ -434,16 +489,16 @@ class CentroidDetector:
         more light was taken off (``removed``: flat indices, DN) within 1 px of their grown region than they hold."""
         index, amount = removed
         owner = grown.ravel()[_box(index, grown.shape)].astype(np.intp)  # (9, spikes)
-        pairs = np.unique(np.stack([owner.ravel(), np.tile(np.arange(len(index)), 9)]), axis=1)
-        pairs = pairs[:, pairs[0] > 0]
-        return np.bincount(pairs[0] - 1, amount[pairs[1]], n) >= flux
+        pairs = _unique(owner * len(index) + np.arange(len(index)))  # (blob label, spike) once each
+        blob, spike = np.divmod(pairs[pairs >= len(index)], len(index))
+        return np.bincount(blob - 1, amount[spike], n) >= flux
 
-    def _not_sharp(self, blobs: _Blobs, resid: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    def _not_sharp(self, blobs: _Blobs, resid: np.ndarray, noise: np.ndarray, psf: _Psf) -> np.ndarray:
         """Mask of blobs no sharper than the PSF: enough light around the peak, and not a one-pixel-wide track."""
         height, width = resid.shape
         peak = resid.ravel()[blobs.peak]
         around = resid.ravel()[_box(blobs.peak, resid.shape)].sum(axis=0) - peak
-        spread = around >= self._min_neighbour_ratio * peak
+        spread = around >= psf.min_neighbour_ratio * peak
 
         # Light beside the ridge (pixels of at least half the peak) across the blob's principal axis, along the
         # pixel direction nearest the normal: a one-pixel-wide track has none there.
@@ -463,12 +518,12 @@ class CentroidDetector:
         ridge_light = np.bincount(rl, blobs.resid[ridge], blobs.n)
         ratio = np.bincount(rl, beside, blobs.n) / ridge_light
         error = np.sqrt(np.bincount(rl, 2.0 * noise.ravel()[blobs.pixel[ridge]].astype(np.float64) ** 2, blobs.n))
-        expected = self._pair_ratio[normal]
+        expected = psf.pair_ratio[normal]
         track = (ratio < 0.5 * expected) & (error / ridge_light < expected / (2.0 * LINE_SIGNIFICANCE))
         return spread & ~track
 
     def _fit_gaussians(
-        self, resid: np.ndarray, grown: np.ndarray, which: np.ndarray, start: np.ndarray, flux: np.ndarray
+        self, resid: np.ndarray, grown: np.ndarray, which: np.ndarray, start: np.ndarray, flux: np.ndarray, psf: _Psf
     ) -> np.ndarray:
         """Centres (n, 2) px of pixel-integrated Gaussians fitted (Levenberg-Marquardt, all blobs at once) on square
         windows around ``start``, leaving out pixels off the image or in another blob.  A fit that fails (centre
@@ -476,7 +531,7 @@ class CentroidDetector:
         if len(which) == 0:
             return start
         height, width = resid.shape
-        offsets = np.arange(-self._radius_px, self._radius_px + 1)
+        offsets = np.arange(-psf.radius_px, psf.radius_px + 1)
         middle = np.rint(start).astype(np.intp)
         cols, rows = middle[:, 0, None] + offsets, middle[:, 1, None] + offsets  # (n, k)
         on = ((cols >= 0) & (cols < width))[:, None, :] & ((rows >= 0) & (rows < height))[:, :, None]
@@ -486,7 +541,7 @@ class CentroidDetector:
         data = resid[rr, cc].reshape(len(which), -1).astype(np.float64)
 
         params = np.column_stack(
-            [np.maximum(flux, 1e-3), start - middle, np.full(len(which), math.log(self.psf_sigma_px))]
+            [np.maximum(flux, 1e-3), start - middle, np.full(len(which), math.log(psf.sigma_px))]
         )
         model, jac = _gaussian_model(params, offsets)
         res = (data - model) * weight
@@ -511,9 +566,9 @@ class CentroidDetector:
         centre = params[:, 1:3] + middle
         sigma = np.exp(params[:, 3])
         ok = (
-            (np.hypot(*(centre - start).T) < self._sigma_eff + 1.0)
-            & (sigma > 0.5 * self.psf_sigma_px)
-            & (sigma < 3.0 * self.psf_sigma_px)
+            (np.hypot(*(centre - start).T) < psf.sigma_eff + 1.0)
+            & (sigma > 0.5 * psf.sigma_px)
+            & (sigma < 3.0 * psf.sigma_px)
             & (params[:, 0] > 0)
         )
         return np.where(ok[:, None], centre, start)
@@ -564,10 +619,13 @@ class _Blobs:
         self.positive = np.maximum(self.resid, 0.0)
         self.flux = np.bincount(self.label, self.resid, n)
         self.in_core = core.ravel()[self.pixel] > 0
+        # Peak: the brightest pixel of the un-grown blob, the last in raster order among equals.
         core_label, core_resid = self.label[self.in_core], self.resid[self.in_core]
-        order = np.lexsort((core_resid, core_label))
-        last = np.append(np.flatnonzero(np.diff(core_label[order])), len(order) - 1)
-        self.peak = self.pixel[self.in_core][order[last]]
+        top = np.full(n, -np.inf)
+        np.maximum.at(top, core_label, core_resid)
+        at_top = core_resid == top[core_label]
+        self.peak = np.zeros(n, np.intp)
+        np.maximum.at(self.peak, core_label[at_top], self.pixel[self.in_core][at_top])
 
     def centroid(self, weight: np.ndarray) -> np.ndarray:
         """Weighted centroids (n, 2) px of the blobs; a blob with no positive weight gets its pixels' mean."""

@@ -63,7 +63,6 @@ FIT_ITERATIONS = 30  # at most; the fit stops once no centre moves by FIT_TOLERA
 FIT_TOLERANCE_PX = 1e-4
 MAX_LABELS = 2**24  # labels are carried in float32 images, exact up to here
 BOX = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]  # a 3 x 3 neighbourhood
-NEIGHBOURS = [(dy, dx) for dy, dx in BOX if dy or dx]
 FORWARD_NEIGHBOURS = [(0, 1), (1, -1), (1, 0), (1, 1)]  # each 8-connected pixel pair once
 
 
@@ -78,7 +77,9 @@ def _box(index: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Flat indices (9, n) of the 3 x 3 neighbourhoods (BOX order, clipped at the border) of flat pixel indices."""
     height, width = shape
     y, x = np.divmod(index, width)
-    return np.stack([np.clip(y + dy, 0, height - 1) * width + np.clip(x + dx, 0, width - 1) for dy, dx in BOX])
+    rows = [np.minimum(np.maximum(y + dy, 0), height - 1) * width for dy in (-1, 0, 1)]
+    cols = [np.minimum(np.maximum(x + dx, 0), width - 1) for dx in (-1, 0, 1)]
+    return np.stack([rows[dy + 1] + cols[dx + 1] for dy, dx in BOX])
 
 
 def _unique(values: np.ndarray) -> np.ndarray:
@@ -198,6 +199,7 @@ class CentroidDetector:
         self.max_stars = None if max_stars is None else checks.integer("max_stars", max_stars, 1, 10**8)
 
         self._psf_constants: dict[float, _Psf] = {}
+        self._work: _Workspace | None = None
 
     def _psf(self, camera: Camera) -> _Psf:
         """The constants that follow from the PSF sigma in force (this detector's, else the camera's)."""
@@ -211,17 +213,22 @@ class CentroidDetector:
     def detect(self, image: np.ndarray, camera: Camera) -> StarMeasurements:
         """Stars on ``image`` (DN, integer or float such as a restored frame; shape (camera.height, camera.width)),
         brightest first: positions (px) and flux (DN above background)."""
-        data = self._checked(image, camera)
+        self._check(image, camera)
         psf = self._psf(camera)
-        height, width = data.shape
-        level, noise = self.background(data)
+        height, width = image.shape
+        work = self._workspace(image.shape)
+        data = work.array("data", np.float32)
+        np.copyto(data, image, casting="unsafe")
+        level, noise = self._background(data, work)
         resid = np.subtract(data, level, out=data)
-        removed = self._clean_spikes(resid, noise, psf) if self.reject_sharp else None
-        smooth = cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, borderType=cv2.BORDER_REFLECT)
+        removed = self._clean_spikes(resid, noise, psf, work) if self.reject_sharp else None
+        smooth = work.array("smooth", np.float32)
+        cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, dst=smooth, borderType=cv2.BORDER_REFLECT)
         signal = smooth if self.matched_filter else resid
-        limit = np.multiply(noise, np.float32(self.threshold_sigma * psf.filter_noise))
-        above = signal > limit
-        n_label, labels = cv2.connectedComponentsWithAlgorithm(above.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_SAUF)
+        limit = np.multiply(noise, np.float32(self.threshold_sigma * psf.filter_noise), out=work.array("limit"))
+        above = np.greater(signal, limit, out=work.array("above", bool))
+        labels = work.array("labels", np.int32)
+        n_label, _ = cv2.connectedComponentsWithAlgorithm(above.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_SAUF, labels)
         pixel = np.flatnonzero(above.ravel())
         component = labels.ravel()[pixel]
         area = np.bincount(component, minlength=n_label)
@@ -235,18 +242,16 @@ class CentroidDetector:
         dtype = np.uint16 if len(pixel) < 2**16 else np.float32
         lut = np.zeros(n_label, dtype)
         lut[kept] = np.arange(1, len(kept) + 1)
-        core = np.zeros(height * width, dtype)
-        core[pixel] = lut[component]
-        core = core.reshape(height, width)
-        if self.deblend_contrast < 1.0:
-            n = self._deblend(core, pixel[lut[component] > 0], signal, limit, len(kept))
-        else:
-            n = len(kept)
+        core = work.array("core", dtype)
+        core.fill(0)
+        core.ravel()[pixel] = lut[component]
+        pixel = pixel[lut[component] > 0]
+        n = self._deblend(core, pixel, signal, limit, len(kept)) if self.deblend_contrast < 1.0 else len(kept)
         grown = core
         if m := psf.margin_px:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
-            grown = cv2.dilate(core, disk)
-            np.copyto(grown, core, where=core > 0)
+            grown = cv2.dilate(core, disk, dst=work.array("grown", dtype))
+            grown.ravel()[pixel] = core.ravel()[pixel]  # a blob's own pixels keep its label
         blobs = _Blobs(grown, core, resid, smooth, n)
 
         good = np.ones(n, bool)
@@ -278,6 +283,11 @@ class CentroidDetector:
         ``tile_px``, the sigma-clipped mean of a quarter of the pixels and the sigma-clipped standard deviation of
         differences between neighbouring pixels (over sqrt 2) on a quarter of the rows, interpolated bilinearly
         between the tile centres."""
+        level, noise = self._background(data, _Workspace(data.shape))
+        return np.array(level), noise
+
+    def _background(self, data: np.ndarray, work: _Workspace) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`background` into ``work``'s arrays (the level a row-strided view)."""
         height, width = data.shape
         ny, nx = max(1, round(height / self.tile_px)), max(1, round(width / self.tile_px))
         th, tw = -(-height // ny), -(-width // nx)
@@ -313,13 +323,13 @@ class CentroidDetector:
                 grid[tuple(index)] = before + (last - before) * (step / (size - (n - 1) * step))
         grid = np.pad(grid, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd").astype(np.float32)
         # The level a view into its padded map (a row-strided array; numpy and OpenCV take it without a copy).
+        padded = ((ny + 2) * th, (nx + 2) * tw)
         level, noise = (
-            cv2.resize(grid[..., k], ((nx + 2) * tw, (ny + 2) * th), interpolation=cv2.INTER_LINEAR)[
-                th : th + height, tw : tw + width
-            ]
-            for k in (0, 1)
+            cv2.resize(grid[..., k], padded[::-1], dst=work.array(name, np.float32, padded),
+                       interpolation=cv2.INTER_LINEAR)[th : th + height, tw : tw + width]
+            for k, name in enumerate(("level_map", "noise_map"))
         )
-        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN))
+        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN), out=work.array("noise"))
 
     def _clipped_mean_std(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Mean, standard deviation and count of each row of ``values`` (float32) within +- ``clip_sigma``
@@ -337,15 +347,16 @@ class CentroidDetector:
             np.subtract(values, centre.astype(np.float32)[:, None], out=dev)
             np.less_equal(np.abs(dev), (c * scale).astype(np.float32)[:, None], out=inside)
             np.multiply(dev, inside, out=dev)
-            count = np.maximum(np.count_nonzero(inside, axis=1), 1)
-            mean_dev = dev.sum(axis=1, dtype=np.float64) / count
+            # Sums of at most a few thousand deviations of a few sigmas: float32 holds them to ~1e-6.
+            count = np.maximum(inside.view(np.uint8).sum(axis=1, dtype=np.int32), 1)
+            mean_dev = dev.sum(axis=1).astype(np.float64) / count
             centre = centre + mean_dev
-            var = np.einsum("ij,ij->i", dev, dev, dtype=np.float64) / count - mean_dev**2
+            var = np.einsum("ij,ij->i", dev, dev).astype(np.float64) / count - mean_dev**2
             scale = np.maximum(np.sqrt(np.maximum(var, 0.0)) / truncation, QUANTISATION_NOISE_DN)
         return centre, scale, count
 
-    def _checked(self, image, camera: Camera) -> np.ndarray:
-        """The image as float32 DN, after checking it is a 2-D integer or finite float array of the camera's size."""
+    def _check(self, image, camera: Camera) -> None:
+        """Refuse anything but a 2-D integer or finite float array of the camera's size."""
         numeric = isinstance(image, np.ndarray) and (np.issubdtype(image.dtype, np.integer)
                                                       or np.issubdtype(image.dtype, np.floating))
         if not numeric or image.ndim != 2:
@@ -355,7 +366,13 @@ class CentroidDetector:
             raise ValueError(f"image shape {image.shape} does not match the camera's {(camera.height, camera.width)}")
         if np.issubdtype(image.dtype, np.floating) and not np.all(np.isfinite(image)):
             raise ValueError("image must be finite (no NaN or inf)")
-        return image.astype(np.float32)
+
+    def _workspace(self, shape: tuple[int, int]) -> _Workspace:
+        """The frame-sized working arrays for images of ``shape``, kept between calls (allocating them anew for
+        every frame costs more than filling them)."""
+        if self._work is None or self._work.shape != shape:
+            self._work = _Workspace(shape)
+        return self._work
 
     def _saturation(self, image: np.ndarray) -> int | None:
         """The saturation level (DN) in force for ``image``; None when no pixel counts as saturated."""
@@ -366,7 +383,9 @@ class CentroidDetector:
         top = int(image.max())
         return top if top >= 255 and (top + 1) & top == 0 else None
 
-    def _clean_spikes(self, resid: np.ndarray, noise: np.ndarray, psf: _Psf) -> tuple[np.ndarray, np.ndarray]:
+    def _clean_spikes(
+        self, resid: np.ndarray, noise: np.ndarray, psf: _Psf, work: _Workspace
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Replace, in place, spikes (hot pixels, cosmic-ray hits and tracks, alone or on a star) by the median of
         their 3 x 3 neighbourhood; return their flat indices and the DN taken off each.
 
@@ -383,7 +402,8 @@ class CentroidDetector:
             """Significance (noise sigmas) of each pixel's excess over what its 3 x 3 median allows."""
             return (flat[index] * gain - median) / (noise_flat[index] * unit)
 
-        candidate = np.flatnonzero((resid * np.float32(gain / (SPIKE_SIGMA * unit)) > noise).ravel())
+        scaled = np.multiply(resid, np.float32(gain / (SPIKE_SIGMA * unit)), out=work.array("scratch"))
+        candidate = np.flatnonzero(np.greater(scaled, noise, out=work.array("above", bool)).ravel())
         median = np.median(flat[_box(candidate, resid.shape)], axis=0)
         is_spike = excess(candidate, median) > SPIKE_SIGMA
         first = candidate[is_spike]
@@ -409,8 +429,11 @@ class CentroidDetector:
         y, x = np.divmod(pixel, width)
         # Steepest ascent: each pixel points to its highest 8-neighbour in the same blob (itself if none is higher).
         best, best_value = pixel.copy(), value[pixel]
-        for dy, dx in NEIGHBOURS:
-            q = np.clip(y + dy, 0, height - 1) * width + np.clip(x + dx, 0, width - 1)
+        box = _box(pixel, core.shape)
+        for k, (dy, dx) in enumerate(BOX):
+            if not dy and not dx:
+                continue
+            q = box[k]
             v = np.where(core_flat[q] == label, value[q], -np.inf)
             up = v > best_value
             best[up], best_value[up] = q[up], v[up]
@@ -426,7 +449,8 @@ class CentroidDetector:
         for dy, dx in FORWARD_NEIGHBOURS:
             i = np.flatnonzero(split & (y + dy < height) & (x + dx >= 0) & (x + dx < width))
             q = (y[i] + dy) * width + x[i] + dx
-            i, q = i[core_flat[q] == label[i]], q[core_flat[q] == label[i]]
+            same = core_flat[q] == label[i]
+            i, q = i[same], q[same]
             j = np.searchsorted(pixel, q)
             i, j = i[top[i] != top[j]], j[top[i] != top[j]]
             pairs.append(np.column_stack([top[i], top[j], np.minimum(value[pixel[i]], value[pixel[j]])]))
@@ -477,9 +501,11 @@ class CentroidDetector:
             basin = basin[basin]
         # A new label for each surviving maximum of a split blob; then labels 1 .. n again.
         label[split] = n + 1 + basin[top[split]]
-        _, compact = np.unique(label, return_inverse=True)
-        core_flat[pixel] = compact + 1
-        return int(compact.max()) + 1
+        used = np.zeros(label.max() + 1, bool)
+        used[label] = True
+        compact = np.cumsum(used)  # labels 1 .. n again, in the same order
+        core_flat[pixel] = compact[label]
+        return int(compact[-1])
 
     @staticmethod
     def _track_remnant(
@@ -602,6 +628,21 @@ def _gaussian_model(params: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray
     d_sigma = outer(gy_s, gx) + outer(gy, gx_s)
     jac = np.stack([shape, flux * outer(gy, gx_c), flux * outer(gy_c, gx), flux * d_sigma], axis=-1)
     return flux * shape, jac
+
+
+class _Workspace:
+    """Named arrays of one frame size (or another shape asked for), made on first use and handed out again."""
+
+    def __init__(self, shape: tuple[int, int]):
+        self.shape = shape
+        self._arrays: dict[tuple[str, np.dtype], np.ndarray] = {}
+
+    def array(self, name: str, dtype=np.float32, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """The array ``name`` of ``dtype`` and ``shape`` (default: the frame's), contents left from its last use."""
+        key = (name, np.dtype(dtype))
+        if key not in self._arrays:
+            self._arrays[key] = np.empty(self.shape if shape is None else shape, dtype)
+        return self._arrays[key]
 
 
 class _Blobs:

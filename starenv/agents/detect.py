@@ -63,7 +63,6 @@ FIT_ITERATIONS = 30  # at most; the fit stops once no centre moves by FIT_TOLERA
 FIT_TOLERANCE_PX = 1e-4
 MAX_LABELS = 2**24  # labels are carried in float32 images, exact up to here
 BOX = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]  # a 3 x 3 neighbourhood
-NEIGHBOURS = [(dy, dx) for dy, dx in BOX if dy or dx]
 FORWARD_NEIGHBOURS = [(0, 1), (1, -1), (1, 0), (1, 1)]  # each 8-connected pixel pair once
 
 
@@ -78,7 +77,15 @@ def _box(index: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Flat indices (9, n) of the 3 x 3 neighbourhoods (BOX order, clipped at the border) of flat pixel indices."""
     height, width = shape
     y, x = np.divmod(index, width)
-    return np.stack([np.clip(y + dy, 0, height - 1) * width + np.clip(x + dx, 0, width - 1) for dy, dx in BOX])
+    rows = [np.minimum(np.maximum(y + dy, 0), height - 1) * width for dy in (-1, 0, 1)]
+    cols = [np.minimum(np.maximum(x + dx, 0), width - 1) for dx in (-1, 0, 1)]
+    return np.stack([rows[dy + 1] + cols[dx + 1] for dy, dx in BOX])
+
+
+def _unique(values: np.ndarray) -> np.ndarray:
+    """The sorted distinct values of an integer array (numpy's own unique hashes, slower on a few thousand)."""
+    values = np.sort(values, axis=None)
+    return values[np.r_[True, values[1:] != values[:-1]]] if len(values) else values
 
 
 def _pixel_fractions(sigma_px: float) -> tuple[float, float]:
@@ -104,6 +111,29 @@ def _least_median_ratio(sigma_px: float) -> float:
     return least
 
 
+class _Psf:
+    """What follows from a Gaussian PSF sigma (px): the matched filter and its noise gain, the sharpness limits and
+    the window margin."""
+
+    def __init__(self, sigma_px: float, matched_filter: bool, window_margin_px: int | None):
+        self.sigma_px = sigma_px
+        # The pixel-integrated PSF has variance sigma^2 + 1/12 px^2 at the pixel centres.
+        self.sigma_eff = math.sqrt(sigma_px**2 + 1.0 / 12.0)
+        self.radius_px = math.ceil(3.0 * self.sigma_eff)
+        self.kernel = cv2.getGaussianKernel(2 * self.radius_px + 1, self.sigma_eff, cv2.CV_32F)
+        # Noise of the smoothed image per unit pixel noise: the root of the sum of the 2-D kernel's squares.
+        self.filter_noise = float(np.sum(self.kernel.astype(np.float64) ** 2)) if matched_filter else 1.0
+        self.margin_px = math.ceil(2.0 * sigma_px) if window_margin_px is None else window_margin_px
+        # Sharpness: light in the 8 neighbours of the peak pixel per unit peak for a PSF centred on the pixel, halved.
+        centre, neighbour = _pixel_fractions(sigma_px)
+        self.min_neighbour_ratio = 0.5 * ((centre + 2.0 * neighbour) ** 2 / centre**2 - 1.0)
+        # Spikes: the least ratio of a PSF pixel's 3 x 3 median to its value.
+        self.median_ratio = _least_median_ratio(sigma_px)
+        rho = neighbour / centre
+        # Track test: light in the two pixels beside a centred PSF's peak, per unit peak, along PAIR_STEPS.
+        self.pair_ratio = np.array([2.0 * rho, 2.0 * rho**2, 2.0 * rho, 2.0 * rho**2])
+
+
 class CentroidDetector:
     """Finds stars on a frame (integer DN, or float such as a restored one) and centroids them (a
     :class:`~starenv.agents.base.StarDetector`).
@@ -112,7 +142,8 @@ class CentroidDetector:
 
     * ``method``: ``"cog"``, ``"iwcog"`` or ``"gaussian"`` (see the module docstring).
     * ``threshold_sigma``: detection threshold, in noise sigmas of the (smoothed) background-subtracted image.
-    * ``psf_sigma_px``: Gaussian PSF sigma (px) that the matched filter, the sharpness tests and the fit assume.
+    * ``psf_sigma_px``: Gaussian PSF sigma (px) that the matched filter, the sharpness tests and the fit assume;
+      None (the default): the spot size the camera model carries (``camera.psf_sigma_px``).
     * ``matched_filter``: smooth with the PSF-matched Gaussian before thresholding (finds fainter stars).
     * ``tile_px``: background tile size (px); smaller follows steeper gradients, larger is less noisy.
     * ``clip_sigma``: sigma-clipping limit of the background statistics.
@@ -126,14 +157,14 @@ class CentroidDetector:
       is a full-scale code ``2^n - 1`` (n = 8 .. 16), else none.
     * ``max_stars``: report at most this many stars (the brightest); None: all.
 
-    The options fit a sensor: ``psf_sigma_px`` should be the head's PSF sigma (the scenario's ``psf_sigma_px``).
+    The constants that follow from a PSF sigma (matched filter, sharpness limits) are computed once per sigma.
     """
 
     def __init__(
         self,
         method: str = "iwcog",
         threshold_sigma: float = 5.0,
-        psf_sigma_px: float = 1.0,
+        psf_sigma_px: float | None = None,
         matched_filter: bool = True,
         tile_px: int = 32,
         clip_sigma: float = 3.0,
@@ -150,48 +181,54 @@ class CentroidDetector:
             raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
         self.method = method
         self.threshold_sigma = checks.in_range("threshold_sigma", threshold_sigma, 0.0, 100.0, low_open=True)
-        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.2, 20.0, unit="px")
+        self.psf_sigma_px = (
+            None if psf_sigma_px is None else checks.in_range("psf_sigma_px", psf_sigma_px, 0.2, 20.0, unit="px")
+        )
         self.matched_filter = _flag("matched_filter", matched_filter)
         self.tile_px = checks.integer("tile_px", tile_px, 8, 4096)
         self.clip_sigma = checks.in_range("clip_sigma", clip_sigma, 1.5, 10.0)
         self.min_area_px = checks.integer("min_area_px", min_area_px, 1, 10**8)
         self.max_area_px = checks.integer("max_area_px", max_area_px, self.min_area_px, 10**8)
         self.deblend_contrast = checks.in_range("deblend_contrast", deblend_contrast, 0.0, 1.0, low_open=True)
-        margin = math.ceil(2.0 * self.psf_sigma_px) if window_margin_px is None else window_margin_px
-        self.window_margin_px = checks.integer("window_margin_px", margin, 0, 100)
+        self.window_margin_px = (
+            None if window_margin_px is None else checks.integer("window_margin_px", window_margin_px, 0, 100)
+        )
         self.reject_sharp = _flag("reject_sharp", reject_sharp)
         self.keep_edge = _flag("keep_edge", keep_edge)
         self.saturation_dn = None if saturation_dn is None else checks.integer("saturation_dn", saturation_dn, 1, 65535)
         self.max_stars = None if max_stars is None else checks.integer("max_stars", max_stars, 1, 10**8)
 
-        # The pixel-integrated PSF has variance sigma^2 + 1/12 px^2 at the pixel centres.
-        self._sigma_eff = math.sqrt(self.psf_sigma_px**2 + 1.0 / 12.0)
-        self._radius_px = math.ceil(3.0 * self._sigma_eff)
-        self._kernel = cv2.getGaussianKernel(2 * self._radius_px + 1, self._sigma_eff, cv2.CV_32F)
-        # Noise of the smoothed image per unit pixel noise: the root of the sum of the 2-D kernel's squares.
-        self._filter_noise = float(np.sum(self._kernel.astype(np.float64) ** 2)) if self.matched_filter else 1.0
-        # Sharpness: light in the 8 neighbours of the peak pixel per unit peak for a PSF centred on the pixel, halved.
-        centre, neighbour = _pixel_fractions(self.psf_sigma_px)
-        self._min_neighbour_ratio = 0.5 * ((centre + 2.0 * neighbour) ** 2 / centre**2 - 1.0)
-        # Spikes: the least ratio of a PSF pixel's 3 x 3 median to its value.
-        self._median_ratio = _least_median_ratio(self.psf_sigma_px)
-        rho = neighbour / centre
-        # Track test: light in the two pixels beside a centred PSF's peak, per unit peak, along PAIR_STEPS.
-        self._pair_ratio = np.array([2.0 * rho, 2.0 * rho**2, 2.0 * rho, 2.0 * rho**2])
+        self._psf_constants: dict[float, _Psf] = {}
+        self._work: _Workspace | None = None
+
+    def _psf(self, camera: Camera) -> _Psf:
+        """The constants that follow from the PSF sigma in force (this detector's, else the camera's)."""
+        sigma = float(self.psf_sigma_px if self.psf_sigma_px is not None else camera.psf_sigma_px)
+        if sigma not in self._psf_constants:
+            if not 0.2 <= sigma <= 20.0:
+                raise ValueError(f"psf_sigma_px must be in [0.2, 20] px, got the camera's {sigma}")
+            self._psf_constants[sigma] = _Psf(sigma, self.matched_filter, self.window_margin_px)
+        return self._psf_constants[sigma]
 
     def detect(self, image: np.ndarray, camera: Camera) -> StarMeasurements:
         """Stars on ``image`` (DN, integer or float such as a restored frame; shape (camera.height, camera.width)),
         brightest first: positions (px) and flux (DN above background)."""
-        data = self._checked(image, camera)
-        height, width = data.shape
-        level, noise = self.background(data)
-        resid = data - level
-        removed = self._clean_spikes(resid, noise) if self.reject_sharp else None
-        smooth = cv2.sepFilter2D(resid, cv2.CV_32F, self._kernel, self._kernel, borderType=cv2.BORDER_REFLECT)
+        self._check(image, camera)
+        psf = self._psf(camera)
+        height, width = image.shape
+        work = self._workspace(image.shape)
+        data = work.array("data", np.float32)
+        np.copyto(data, image, casting="unsafe")
+        level, noise = self._background(data, work)
+        resid = np.subtract(data, level, out=data)
+        removed = self._clean_spikes(resid, noise, psf, work) if self.reject_sharp else None
+        smooth = work.array("smooth", np.float32)
+        cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, dst=smooth, borderType=cv2.BORDER_REFLECT)
         signal = smooth if self.matched_filter else resid
-        limit = noise * np.float32(self.threshold_sigma * self._filter_noise)
-        above = signal > limit
-        n_label, labels = cv2.connectedComponents(above.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+        limit = np.multiply(noise, np.float32(self.threshold_sigma * psf.filter_noise), out=work.array("limit"))
+        above = np.greater(signal, limit, out=work.array("above", bool))
+        labels = work.array("labels", np.int32)
+        n_label, _ = cv2.connectedComponentsWithAlgorithm(above.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_SAUF, labels)
         pixel = np.flatnonzero(above.ravel())
         component = labels.ravel()[pixel]
         area = np.bincount(component, minlength=n_label)
@@ -200,17 +237,21 @@ class CentroidDetector:
             return StarMeasurements(np.zeros((0, 2)))
         if len(kept) >= MAX_LABELS:
             raise ValueError(f"{len(kept)} blobs above the threshold: raise threshold_sigma or min_area_px")
-        lut = np.zeros(n_label, np.float32)
+        # Blob labels 1 .. n, 0 elsewhere; deblending makes at most one blob per pixel, and OpenCV dilates 16-bit
+        # images faster than float ones.
+        dtype = np.uint16 if len(pixel) < 2**16 else np.float32
+        lut = np.zeros(n_label, dtype)
         lut[kept] = np.arange(1, len(kept) + 1)
-        core = np.zeros(height * width, np.float32)  # blob labels 1 .. n, 0 elsewhere
-        core[pixel] = lut[component]
-        core = core.reshape(height, width)
-        n = self._deblend(core, signal, limit, len(kept)) if self.deblend_contrast < 1.0 else len(kept)
+        core = work.array("core", dtype)
+        core.fill(0)
+        core.ravel()[pixel] = lut[component]
+        pixel = pixel[lut[component] > 0]
+        n = self._deblend(core, pixel, signal, limit, len(kept)) if self.deblend_contrast < 1.0 else len(kept)
         grown = core
-        if m := self.window_margin_px:
+        if m := psf.margin_px:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
-            grown = cv2.dilate(core, disk)
-            np.copyto(grown, core, where=core > 0)
+            grown = cv2.dilate(core, disk, dst=work.array("grown", dtype))
+            grown.ravel()[pixel] = core.ravel()[pixel]  # a blob's own pixels keep its label
         blobs = _Blobs(grown, core, resid, smooth, n)
 
         good = np.ones(n, bool)
@@ -220,7 +261,7 @@ class CentroidDetector:
             touching = (x <= m) | (y <= m) | (x >= width - 1 - m) | (y >= height - 1 - m)
             good &= np.bincount(blobs.label[c], touching, n) == 0
         if self.reject_sharp:
-            good &= self._not_sharp(blobs, resid, noise) & ~self._track_remnant(grown, n, removed, blobs.flux)
+            good &= self._not_sharp(blobs, resid, noise, psf) & ~self._track_remnant(grown, n, removed, blobs.flux)
 
         streak = blobs.mask_anisotropy() > STREAK_ANISOTROPY_PX2
         xy = blobs.centroid(blobs.positive)
@@ -233,14 +274,20 @@ class CentroidDetector:
             if saturation is not None:
                 saturated = np.bincount(blobs.label, image.ravel()[blobs.pixel] >= saturation, n) > 0
             fit = np.flatnonzero(good & ~streak & ~saturated)
-            xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit])
+            xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit], psf)
         order = np.flatnonzero(good)[np.argsort(-blobs.flux[good], kind="stable")][: self.max_stars]
         return StarMeasurements(xy[order], blobs.flux[order])
 
     def background(self, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Local background level and noise (DN) of a float32 image, both float32 (H, W): on tiles of about
-        ``tile_px``, the sigma-clipped mean of the pixels and the sigma-clipped standard deviation of differences
-        between neighbouring pixels (over sqrt 2), interpolated bilinearly between the tile centres."""
+        ``tile_px``, the sigma-clipped mean of a quarter of the pixels and the sigma-clipped standard deviation of
+        differences between neighbouring pixels (over sqrt 2) on a quarter of the rows, interpolated bilinearly
+        between the tile centres."""
+        level, noise = self._background(data, _Workspace(data.shape))
+        return np.array(level), noise
+
+    def _background(self, data: np.ndarray, work: _Workspace) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`background` into ``work``'s arrays (the level a row-strided view)."""
         height, width = data.shape
         ny, nx = max(1, round(height / self.tile_px)), max(1, round(width / self.tile_px))
         th, tw = -(-height // ny), -(-width // nx)
@@ -250,12 +297,13 @@ class CentroidDetector:
             cols = np.r_[0 : (nx - 1) * tw, width - tw : width]
             data = data[np.ix_(rows, cols)]
         tiles = data.reshape(ny, th, nx, tw)
-        # Level from a checkerboard of pixels (centred on the tile, as a gradient needs); noise from differences of
-        # horizontal neighbours (blind to gradients) on every third row.  Both as (tiles, values) arrays.
+        # Level from a quarter of the pixels, every other one on every other row, the rows alternating between the
+        # even and the odd columns (a sample centred on the tile, as a gradient needs); noise from differences of
+        # horizontal neighbours (blind to gradients) on every fourth row.  Both as (tiles, values) arrays.
         level_sample = np.concatenate(
-            [tiles[:, i::2, :, i::2].transpose(0, 2, 1, 3).reshape(ny * nx, -1) for i in (0, 1)], axis=1
+            [tiles[:, i::4, :, j::2].transpose(0, 2, 1, 3).reshape(ny * nx, -1) for i, j in ((0, 0), (3, 1))], axis=1
         )
-        rows = tiles[:, ::3].transpose(0, 2, 1, 3)
+        rows = tiles[:, 1::4].transpose(0, 2, 1, 3)
         centre, _, count = self._clipped_mean_std(level_sample)
         _, spread, _ = self._clipped_mean_std((rows[..., 1:] - rows[..., :-1]).reshape(ny * nx, -1))
         scale = np.maximum(spread / math.sqrt(2.0), QUANTISATION_NOISE_DN)
@@ -274,15 +322,14 @@ class CentroidDetector:
                 index[axis] = n - 1
                 grid[tuple(index)] = before + (last - before) * (step / (size - (n - 1) * step))
         grid = np.pad(grid, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd").astype(np.float32)
+        # The level a view into its padded map (a row-strided array; numpy and OpenCV take it without a copy).
+        padded = ((ny + 2) * th, (nx + 2) * tw)
         level, noise = (
-            np.ascontiguousarray(
-                cv2.resize(grid[..., k], ((nx + 2) * tw, (ny + 2) * th), interpolation=cv2.INTER_LINEAR)[
-                    th : th + height, tw : tw + width
-                ]
-            )
-            for k in (0, 1)
+            cv2.resize(grid[..., k], padded[::-1], dst=work.array(name, np.float32, padded),
+                       interpolation=cv2.INTER_LINEAR)[th : th + height, tw : tw + width]
+            for k, name in enumerate(("level_map", "noise_map"))
         )
-        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN), out=noise)
+        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN), out=work.array("noise"))
 
     def _clipped_mean_std(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Mean, standard deviation and count of each row of ``values`` (float32) within +- ``clip_sigma``
@@ -300,15 +347,16 @@ class CentroidDetector:
             np.subtract(values, centre.astype(np.float32)[:, None], out=dev)
             np.less_equal(np.abs(dev), (c * scale).astype(np.float32)[:, None], out=inside)
             np.multiply(dev, inside, out=dev)
-            count = np.maximum(np.count_nonzero(inside, axis=1), 1)
-            mean_dev = dev.sum(axis=1, dtype=np.float64) / count
+            # Sums of at most a few thousand deviations of a few sigmas: float32 holds them to ~1e-6.
+            count = np.maximum(inside.view(np.uint8).sum(axis=1, dtype=np.int32), 1)
+            mean_dev = dev.sum(axis=1).astype(np.float64) / count
             centre = centre + mean_dev
-            var = np.einsum("ij,ij->i", dev, dev, dtype=np.float64) / count - mean_dev**2
+            var = np.einsum("ij,ij->i", dev, dev).astype(np.float64) / count - mean_dev**2
             scale = np.maximum(np.sqrt(np.maximum(var, 0.0)) / truncation, QUANTISATION_NOISE_DN)
         return centre, scale, count
 
-    def _checked(self, image, camera: Camera) -> np.ndarray:
-        """The image as float32 DN, after checking it is a 2-D integer or finite float array of the camera's size."""
+    def _check(self, image, camera: Camera) -> None:
+        """Refuse anything but a 2-D integer or finite float array of the camera's size."""
         numeric = isinstance(image, np.ndarray) and (np.issubdtype(image.dtype, np.integer)
                                                       or np.issubdtype(image.dtype, np.floating))
         if not numeric or image.ndim != 2:
@@ -318,7 +366,13 @@ class CentroidDetector:
             raise ValueError(f"image shape {image.shape} does not match the camera's {(camera.height, camera.width)}")
         if np.issubdtype(image.dtype, np.floating) and not np.all(np.isfinite(image)):
             raise ValueError("image must be finite (no NaN or inf)")
-        return image.astype(np.float32)
+
+    def _workspace(self, shape: tuple[int, int]) -> _Workspace:
+        """The frame-sized working arrays for images of ``shape``, kept between calls (allocating them anew for
+        every frame costs more than filling them)."""
+        if self._work is None or self._work.shape != shape:
+            self._work = _Workspace(shape)
+        return self._work
 
     def _saturation(self, image: np.ndarray) -> int | None:
         """The saturation level (DN) in force for ``image``; None when no pixel counts as saturated."""
@@ -329,7 +383,9 @@ class CentroidDetector:
         top = int(image.max())
         return top if top >= 255 and (top + 1) & top == 0 else None
 
-    def _clean_spikes(self, resid: np.ndarray, noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _clean_spikes(
+        self, resid: np.ndarray, noise: np.ndarray, psf: _Psf, work: _Workspace
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Replace, in place, spikes (hot pixels, cosmic-ray hits and tracks, alone or on a star) by the median of
         their 3 x 3 neighbourhood; return their flat indices and the DN taken off each.
 
@@ -339,20 +395,21 @@ class CentroidDetector:
         neighbourhoods.  Only pixels whose scaled value alone passes the first test are examined.
         """
         flat, noise_flat = resid.ravel(), noise.ravel()
-        gain = SPIKE_MARGIN * self._median_ratio
+        gain = SPIKE_MARGIN * psf.median_ratio
         unit = math.hypot(gain, MEDIAN_NOISE)
 
         def excess(index, median):
             """Significance (noise sigmas) of each pixel's excess over what its 3 x 3 median allows."""
             return (flat[index] * gain - median) / (noise_flat[index] * unit)
 
-        candidate = np.flatnonzero((resid * np.float32(gain / (SPIKE_SIGMA * unit)) > noise).ravel())
+        scaled = np.multiply(resid, np.float32(gain / (SPIKE_SIGMA * unit)), out=work.array("scratch"))
+        candidate = np.flatnonzero(np.greater(scaled, noise, out=work.array("above", bool)).ravel())
         median = np.median(flat[_box(candidate, resid.shape)], axis=0)
         is_spike = excess(candidate, median) > SPIKE_SIGMA
         first = candidate[is_spike]
         original = flat[first].astype(np.float64)
         flat[first] = median[is_spike]
-        near = np.unique(_box(first, resid.shape))
+        near = _unique(_box(first, resid.shape))
         median = np.median(flat[_box(near, resid.shape)], axis=0)
         was_first = np.isin(near, first)
         is_spike = was_first | (excess(near, median) > SPIKE_GROW_SIGMA)
@@ -362,18 +419,21 @@ class CentroidDetector:
         flat[index] = median[is_spike]
         return index, before - flat[index]
 
-    def _deblend(self, core: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int) -> int:
-        """Split blobs of ``core`` (float32 labels 1 .. n, 0 elsewhere) holding several significant maxima of
-        ``signal``; relabels ``core`` in place and returns the new number of blobs."""
+    def _deblend(self, core: np.ndarray, pixel: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int) -> int:
+        """Split blobs of ``core`` (labels 1 .. n, 0 elsewhere; ``pixel``: the sorted flat indices of its blob
+        pixels) holding several significant maxima of ``signal``; relabels ``core`` in place and returns the new
+        number of blobs."""
         height, width = core.shape
         core_flat, value = core.ravel(), signal.ravel()
-        pixel = np.flatnonzero(core_flat > 0)
         label = core_flat[pixel].astype(np.intp)
         y, x = np.divmod(pixel, width)
         # Steepest ascent: each pixel points to its highest 8-neighbour in the same blob (itself if none is higher).
         best, best_value = pixel.copy(), value[pixel]
-        for dy, dx in NEIGHBOURS:
-            q = np.clip(y + dy, 0, height - 1) * width + np.clip(x + dx, 0, width - 1)
+        box = _box(pixel, core.shape)
+        for k, (dy, dx) in enumerate(BOX):
+            if not dy and not dx:
+                continue
+            q = box[k]
             v = np.where(core_flat[q] == label, value[q], -np.inf)
             up = v > best_value
             best[up], best_value[up] = q[up], v[up]
@@ -389,7 +449,8 @@ class CentroidDetector:
         for dy, dx in FORWARD_NEIGHBOURS:
             i = np.flatnonzero(split & (y + dy < height) & (x + dx >= 0) & (x + dx < width))
             q = (y[i] + dy) * width + x[i] + dx
-            i, q = i[core_flat[q] == label[i]], q[core_flat[q] == label[i]]
+            same = core_flat[q] == label[i]
+            i, q = i[same], q[same]
             j = np.searchsorted(pixel, q)
             i, j = i[top[i] != top[j]], j[top[i] != top[j]]
             pairs.append(np.column_stack([top[i], top[j], np.minimum(value[pixel[i]], value[pixel[j]])]))
@@ -399,11 +460,29 @@ class CentroidDetector:
         low_basin, high_basin = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
         key = low_basin * len(pixel) + high_basin
         order = np.lexsort((-pairs[:, 2], key))
-        _, first = np.unique(key[order], return_index=True)
-        pairs = pairs[order[first]]
+        key = key[order]
+        pairs = pairs[order[np.r_[True, key[1:] != key[:-1]]]]
+        pairs = pairs[np.argsort(-pairs[:, 2], kind="stable")]
         height_at = value[pixel]
         rise_needed = np.maximum(limit.ravel()[pixel], self.deblend_contrast * height_at)
+        a, b = pairs[:, 0].astype(np.intp), pairs[:, 1].astype(np.intp)
+
+        # Highest saddles first: the lower of the two maxima merges into the higher unless it rises enough.  A
+        # maximum's first saddle in that order is its highest, and nothing has joined it yet: where the maximum on
+        # the other side is higher, that saddle alone decides, so those merges are made at once and only the
+        # saddles between what is left go through the loop (same result as the loop over all saddles).
+        end, partner = np.concatenate([a, b]), np.concatenate([b, a])
+        first = np.lexsort((np.tile(np.arange(len(a)), 2), end))
+        first = first[np.r_[True, end[first][1:] != end[first][:-1]]]
+        end, partner, saddle = end[first], partner[first], np.tile(pairs[:, 2], 2)[first]
+        merge = (height_at[end] < height_at[partner]) & (height_at[end] - saddle < rise_needed[end])
         basin = np.arange(len(pixel))
+        basin[end[merge]] = partner[merge]
+        while not np.array_equal(basin[basin], basin):
+            basin = basin[basin]
+        rest = basin[a] != basin[b]
+        basin = basin.tolist()
+        heights, needed = height_at.tolist(), rise_needed.tolist()
 
         def root(k):
             while basin[k] != k:
@@ -411,20 +490,22 @@ class CentroidDetector:
                 k = basin[k]
             return k
 
-        # Highest saddles first: the lower of the two maxima merges into the higher unless it rises enough.
-        for a, b, saddle in pairs[np.argsort(-pairs[:, 2], kind="stable")]:
-            ra, rb = root(int(a)), root(int(b))
-            if ra != rb:
-                low, high = (ra, rb) if height_at[ra] < height_at[rb] else (rb, ra)
-                if height_at[low] - saddle < rise_needed[low]:
+        for i, j, level in zip(a[rest].tolist(), b[rest].tolist(), pairs[rest, 2].tolist(), strict=True):
+            ri, rj = root(i), root(j)
+            if ri != rj:
+                low, high = (ri, rj) if heights[ri] < heights[rj] else (rj, ri)
+                if heights[low] - level < needed[low]:
                     basin[low] = high
+        basin = np.array(basin)
         while not np.array_equal(basin[basin], basin):
             basin = basin[basin]
         # A new label for each surviving maximum of a split blob; then labels 1 .. n again.
         label[split] = n + 1 + basin[top[split]]
-        _, compact = np.unique(label, return_inverse=True)
-        core_flat[pixel] = compact + 1
-        return int(compact.max()) + 1
+        used = np.zeros(label.max() + 1, bool)
+        used[label] = True
+        compact = np.cumsum(used)  # labels 1 .. n again, in the same order
+        core_flat[pixel] = compact[label]
+        return int(compact[-1])
 
     @staticmethod
     def _track_remnant(
@@ -434,16 +515,16 @@ class CentroidDetector:
         more light was taken off (``removed``: flat indices, DN) within 1 px of their grown region than they hold."""
         index, amount = removed
         owner = grown.ravel()[_box(index, grown.shape)].astype(np.intp)  # (9, spikes)
-        pairs = np.unique(np.stack([owner.ravel(), np.tile(np.arange(len(index)), 9)]), axis=1)
-        pairs = pairs[:, pairs[0] > 0]
-        return np.bincount(pairs[0] - 1, amount[pairs[1]], n) >= flux
+        pairs = _unique(owner * len(index) + np.arange(len(index)))  # (blob label, spike) once each
+        blob, spike = np.divmod(pairs[pairs >= len(index)], len(index))
+        return np.bincount(blob - 1, amount[spike], n) >= flux
 
-    def _not_sharp(self, blobs: _Blobs, resid: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    def _not_sharp(self, blobs: _Blobs, resid: np.ndarray, noise: np.ndarray, psf: _Psf) -> np.ndarray:
         """Mask of blobs no sharper than the PSF: enough light around the peak, and not a one-pixel-wide track."""
         height, width = resid.shape
         peak = resid.ravel()[blobs.peak]
         around = resid.ravel()[_box(blobs.peak, resid.shape)].sum(axis=0) - peak
-        spread = around >= self._min_neighbour_ratio * peak
+        spread = around >= psf.min_neighbour_ratio * peak
 
         # Light beside the ridge (pixels of at least half the peak) across the blob's principal axis, along the
         # pixel direction nearest the normal: a one-pixel-wide track has none there.
@@ -463,12 +544,12 @@ class CentroidDetector:
         ridge_light = np.bincount(rl, blobs.resid[ridge], blobs.n)
         ratio = np.bincount(rl, beside, blobs.n) / ridge_light
         error = np.sqrt(np.bincount(rl, 2.0 * noise.ravel()[blobs.pixel[ridge]].astype(np.float64) ** 2, blobs.n))
-        expected = self._pair_ratio[normal]
+        expected = psf.pair_ratio[normal]
         track = (ratio < 0.5 * expected) & (error / ridge_light < expected / (2.0 * LINE_SIGNIFICANCE))
         return spread & ~track
 
     def _fit_gaussians(
-        self, resid: np.ndarray, grown: np.ndarray, which: np.ndarray, start: np.ndarray, flux: np.ndarray
+        self, resid: np.ndarray, grown: np.ndarray, which: np.ndarray, start: np.ndarray, flux: np.ndarray, psf: _Psf
     ) -> np.ndarray:
         """Centres (n, 2) px of pixel-integrated Gaussians fitted (Levenberg-Marquardt, all blobs at once) on square
         windows around ``start``, leaving out pixels off the image or in another blob.  A fit that fails (centre
@@ -476,7 +557,7 @@ class CentroidDetector:
         if len(which) == 0:
             return start
         height, width = resid.shape
-        offsets = np.arange(-self._radius_px, self._radius_px + 1)
+        offsets = np.arange(-psf.radius_px, psf.radius_px + 1)
         middle = np.rint(start).astype(np.intp)
         cols, rows = middle[:, 0, None] + offsets, middle[:, 1, None] + offsets  # (n, k)
         on = ((cols >= 0) & (cols < width))[:, None, :] & ((rows >= 0) & (rows < height))[:, :, None]
@@ -486,7 +567,7 @@ class CentroidDetector:
         data = resid[rr, cc].reshape(len(which), -1).astype(np.float64)
 
         params = np.column_stack(
-            [np.maximum(flux, 1e-3), start - middle, np.full(len(which), math.log(self.psf_sigma_px))]
+            [np.maximum(flux, 1e-3), start - middle, np.full(len(which), math.log(psf.sigma_px))]
         )
         model, jac = _gaussian_model(params, offsets)
         res = (data - model) * weight
@@ -511,9 +592,9 @@ class CentroidDetector:
         centre = params[:, 1:3] + middle
         sigma = np.exp(params[:, 3])
         ok = (
-            (np.hypot(*(centre - start).T) < self._sigma_eff + 1.0)
-            & (sigma > 0.5 * self.psf_sigma_px)
-            & (sigma < 3.0 * self.psf_sigma_px)
+            (np.hypot(*(centre - start).T) < psf.sigma_eff + 1.0)
+            & (sigma > 0.5 * psf.sigma_px)
+            & (sigma < 3.0 * psf.sigma_px)
             & (params[:, 0] > 0)
         )
         return np.where(ok[:, None], centre, start)
@@ -549,6 +630,21 @@ def _gaussian_model(params: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray
     return flux * shape, jac
 
 
+class _Workspace:
+    """Named arrays of one frame size (or another shape asked for), made on first use and handed out again."""
+
+    def __init__(self, shape: tuple[int, int]):
+        self.shape = shape
+        self._arrays: dict[tuple[str, np.dtype], np.ndarray] = {}
+
+    def array(self, name: str, dtype=np.float32, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """The array ``name`` of ``dtype`` and ``shape`` (default: the frame's), contents left from its last use."""
+        key = (name, np.dtype(dtype))
+        if key not in self._arrays:
+            self._arrays[key] = np.empty(self.shape if shape is None else shape, dtype)
+        return self._arrays[key]
+
+
 class _Blobs:
     """The pixels of the grown blobs as flat arrays (blob index, pixel index, x, y, residual and smoothed DN, whether
     in the un-grown blob), with each blob's flux (DN) and peak pixel (brightest of the un-grown blob)."""
@@ -564,10 +660,13 @@ class _Blobs:
         self.positive = np.maximum(self.resid, 0.0)
         self.flux = np.bincount(self.label, self.resid, n)
         self.in_core = core.ravel()[self.pixel] > 0
+        # Peak: the brightest pixel of the un-grown blob, the last in raster order among equals.
         core_label, core_resid = self.label[self.in_core], self.resid[self.in_core]
-        order = np.lexsort((core_resid, core_label))
-        last = np.append(np.flatnonzero(np.diff(core_label[order])), len(order) - 1)
-        self.peak = self.pixel[self.in_core][order[last]]
+        top = np.full(n, -np.inf)
+        np.maximum.at(top, core_label, core_resid)
+        at_top = core_resid == top[core_label]
+        self.peak = np.zeros(n, np.intp)
+        np.maximum.at(self.peak, core_label[at_top], self.pixel[self.in_core][at_top])
 
     def centroid(self, weight: np.ndarray) -> np.ndarray:
         """Weighted centroids (n, 2) px of the blobs; a blob with no positive weight gets its pixels' mean."""

@@ -104,6 +104,14 @@ class Predictor(Protocol):
 
 
 @runtime_checkable
+class AttitudeFilter(Predictor, Protocol):
+    """A predictor that fuses: ``update`` takes the identified (measured) stars even when nothing was solved, and
+    ``posterior`` is the pipeline's estimate -- attitude, gyro bias (3,) rad/s and error covariance -- or None."""
+
+    def posterior(self) -> tuple[Rotation, np.ndarray, np.ndarray] | None: ...
+
+
+@runtime_checkable
 class Deblurrer(Protocol):
     """Restores one head's smeared image, knowing the gyro samples over its exposure."""
 

@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 from starenv.agents.base import (
     MAX_STARS,
     ROLE_PROTOCOLS,
+    AttitudeFilter,
     Prediction,
     Restoration,
     SensorInfo,
@@ -270,7 +271,12 @@ class Pipeline:
                     self._timed("corrector", corrector.learn, identified[h], h, cam, attitude, self.catalog)
         elif prediction.attitude is not None:
             attitude, report.source = prediction.attitude, "predicted"
-        if attitude is not None and ag["predictor"] is not None:
+        if isinstance(ag["predictor"], AttitudeFilter):
+            # a filter fuses the measured stars and its posterior is the action (its own prediction when none)
+            if attitude is not None:
+                self._timed("predictor", ag["predictor"].update, attitude, identified, step.time_s)
+                attitude = ag["predictor"].posterior()[0]
+        elif attitude is not None and ag["predictor"] is not None:
             carried = identified if report.source == "solved" else prediction.stars
             self._timed("predictor", ag["predictor"].update, attitude, carried, step.time_s)
         report.latency_s["pipeline"] = time.perf_counter() - t_start

@@ -84,15 +84,15 @@ class _GyroHistory:
         ends = ends[(ends >= t0 - TIME_TOLERANCE_S) & (ends <= t1 + TIME_TOLERANCE_S)]
         return float(ends[-1]) if len(ends) else t0
 
-    def pieces(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
-        """``[t0, t1]`` (s) cut at the sample boundaries: each piece's delta-angle (m, 3) rad, body frame, and its
+    def pieces(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``[t0, t1]`` (s) cut at the sample boundaries: each piece's delta-angle (m, 3) rad, body frame, its
         coning term (m, 3) rad, ``(1/12) dtheta_{k-1} x dtheta_k`` of its sample scaled by (piece / sample length)^3
-        (zero without a previous sample, and outside the samples)."""
+        (zero without a previous sample, and outside the samples), and its length (m,) s."""
         if t1 - t0 <= TIME_TOLERANCE_S:
-            return np.zeros((0, 3)), np.zeros((0, 3))
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
         n = len(self.end)
         if not n:
-            return np.zeros((1, 3)), np.zeros((1, 3))
+            return np.zeros((1, 3)), np.zeros((1, 3)), np.array([t1 - t0])
         bounds = np.concatenate([self.start[:1], self.end])
         cuts = np.concatenate([[t0], bounds[(bounds > t0 + TIME_TOLERANCE_S) & (bounds < t1 - TIME_TOLERANCE_S)], [t1]])
         span = np.diff(cuts)
@@ -107,7 +107,7 @@ class _GyroHistory:
         previous = np.concatenate([np.zeros((1, 3)), whole[:-1]])
         fraction = np.where(inside, span / np.where(length[k] > 0.0, length[k], 1.0), 0.0)
         coning = np.cross(previous[k], whole[k]) / 12.0 * fraction[:, None] ** 3
-        return rate * span[:, None], coning
+        return rate * span[:, None], coning, span
 
 
 def _field_radius(camera: Camera, margin_px: float) -> float:
@@ -234,7 +234,7 @@ class FirstOrderPredictor(_GyroPropagator):
         ]
         return attitude.as_matrix(), directions, [s.catalog_id.copy() for s in stars]
 
-    def _propagated(self, state, delta_angles: np.ndarray, coning: np.ndarray):
+    def _propagated(self, state, delta_angles: np.ndarray, coning: np.ndarray, span: np.ndarray):
         attitude, directions, ids = state
         carried = np.eye(3)
         for increment in np.eye(3) - skew(delta_angles):
@@ -309,7 +309,7 @@ class QuaternionPredictor(_GyroPropagator):
     def _state_from(self, attitude: Rotation, stars: list[StarMeasurements]):
         return attitude, [self._catalog_rows(s.catalog_id) for s in stars]
 
-    def _propagated(self, state, delta_angles: np.ndarray, coning: np.ndarray):
+    def _propagated(self, state, delta_angles: np.ndarray, coning: np.ndarray, span: np.ndarray):
         attitude, seen = state
         rotation_vectors = delta_angles + coning if self.coning_correction else delta_angles
         for phi in rotation_vectors:

@@ -1,0 +1,179 @@
+"""Gyro-star fusion: a multiplicative extended Kalman filter (MEKF) on attitude and gyro bias.
+
+State: the attitude ``A`` (inertial -> body, a scipy ``Rotation``) and the gyro bias ``b`` (rad/s, body frame); the
+error state ``x = (dtheta, db)`` with ``A_true = exp([dtheta x]) A`` and ``b_true = b + db`` (Lefferts, Markley and
+Shuster 1982; Markley and Crassidis 2014, Sec. 6.2), covariance ``P`` (6, 6).
+
+Propagation, per gyro piece of length ``h`` (the sample intervals of :class:`~starenv.agents.predict.
+QuaternionPredictor`, coning term included) with the bias-corrected rate ``w = dtheta / h - b``:
+``A <- exp(-[w h x]) A``; ``P <- Phi P Phi^T + Q`` with ``Phi = I + F h``, ``F = [[-[w x], I], [0, 0]]`` and the
+discrete noise of angle random walk ``sigma_v`` and bias random walk ``sigma_u``:
+``Q = [[sv^2 h + su^2 h^3 / 3, su^2 h^2 / 2], [su^2 h^2 / 2, su^2 h]]`` (per axis).  The datasheet values map as
+``sigma_v = ARW (deg/sqrt h) * pi/180 / 60`` rad/sqrt(s) and ``sigma_u = RRW (deg/h/sqrt h) * pi/180 / 3600 / 60``
+rad/s/sqrt(s); the bias instability ``B`` (deg/h), a Gauss-Markov process, is folded into the bias walk as
+``B^2 / bias_correlation_s`` per second (the walk that reaches ``B`` over the correlation time) -- a choice that keeps
+the state at six, stated here.
+
+Update, per identified star (HIP id in the catalogue): its body-frame unit vector ``b_m`` (the calibrated camera's
+``unproject`` and mounting) against ``b_hat = A r`` of its catalogue direction ``r``: innovation ``b_m - b_hat``,
+``H = [-[b_hat x], 0]``, noise ``sigma^2 I`` with ``sigma`` = ``centroid_noise_px`` over the head's focal length in
+pixels.  A star whose innovation's squared Mahalanobis distance exceeds ``gate`` (chi-square, 2 degrees of freedom
+-- a unit vector error has two -- at 99.9 %: 13.8) is rejected; a frame whose accepted stars' normalised innovation
+squared exceeds the 99.9 % chi-square bound of its degrees of freedom is rejected whole.  The accepted stars update
+the state in one batch (Joseph form).
+
+In the pipeline the filter is the predictor (an :class:`~starenv.agents.base.AttitudeFilter`): ``predict`` carries it
+to the frame and predicts the stars; ``update`` fuses the identified stars; ``posterior`` is the action.  With no
+estimate yet, the first solved attitude initialises it (``initial_attitude_sigma_arcsec``,
+``initial_bias_sigma_deg_hr``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from starenv import checks
+from starenv.agents.base import StarMeasurements
+from starenv.agents.predict import QuaternionPredictor
+from starenv.sim.conventions import ARCSEC, DEG
+from starenv.sim.optics import Camera
+from starenv.sim.sky import StarCatalog
+
+STAR_GATE = float(chi2.ppf(0.999, 2))  # 13.8: a star's innovation beyond this is rejected
+FRAME_CONFIDENCE = 0.999
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """The cross-product matrix [v x] (3, 3) of a 3-vector."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def process_noise(h: float, sigma_v: float, sigma_u: float) -> np.ndarray:
+    """Discrete process noise (6, 6) of one step of ``h`` s: angle random walk ``sigma_v`` (rad/sqrt s) and bias
+    random walk ``sigma_u`` (rad/s/sqrt s), per axis (module docstring)."""
+    eye = np.eye(3)
+    q = np.zeros((6, 6))
+    q[:3, :3] = (sigma_v**2 * h + sigma_u**2 * h**3 / 3.0) * eye
+    q[:3, 3:] = q[3:, :3] = (sigma_u**2 * h**2 / 2.0) * eye
+    q[3:, 3:] = sigma_u**2 * h * eye
+    return q
+
+
+class MekfPredictor(QuaternionPredictor):
+    """The MEKF (module docstring) as a predictor that also gives the pipeline its action.
+
+    Options (the gyro's datasheet, the sensor's centroid noise, the start): ``arw_deg_rthr``, ``rrw_deg_hr_rthr``,
+    ``bias_instability_deg_hr``, ``bias_correlation_s``, ``centroid_noise_px``, ``initial_attitude_sigma_arcsec``,
+    ``initial_bias_sigma_deg_hr``, ``gate`` (per-star chi-square bound), plus ``margin_px``.
+    """
+
+    def __init__(self, arw_deg_rthr: float = 0.01, rrw_deg_hr_rthr: float = 0.005, bias_instability_deg_hr: float = 0.0,
+                 bias_correlation_s: float = 300.0, centroid_noise_px: float = 0.2,
+                 initial_attitude_sigma_arcsec: float = 60.0, initial_bias_sigma_deg_hr: float = 10.0,
+                 gate: float = STAR_GATE, margin_px: float = 0.0):
+        super().__init__(margin_px, coning_correction=True)
+        arw = checks.non_negative("arw_deg_rthr", arw_deg_rthr, unit="deg/sqrt(h)")
+        rrw = checks.non_negative("rrw_deg_hr_rthr", rrw_deg_hr_rthr, unit="deg/h/sqrt(h)")
+        bias_inst = checks.non_negative("bias_instability_deg_hr", bias_instability_deg_hr, unit="deg/h")
+        tau = checks.positive("bias_correlation_s", bias_correlation_s, unit="s")
+        self.sigma_v = arw * DEG / 60.0
+        self.sigma_u = math.sqrt((rrw * DEG / 3600.0 / 60.0) ** 2 + (bias_inst * DEG / 3600.0) ** 2 / tau)
+        self.centroid_noise_px = checks.positive("centroid_noise_px", centroid_noise_px, unit="px")
+        sigma_att = checks.positive("initial_attitude_sigma_arcsec", initial_attitude_sigma_arcsec) * ARCSEC
+        sigma_bias = checks.non_negative("initial_bias_sigma_deg_hr", initial_bias_sigma_deg_hr) * DEG / 3600.0
+        self.p0 = np.diag([sigma_att**2] * 3 + [sigma_bias**2] * 3)
+        self.gate = checks.positive("gate", gate)
+        self._predicted = None  # the state carried to the last prediction's time
+        self.stars_used = 0
+        self.stars_rejected = 0
+        self.frame_rejected = False
+
+    def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
+        super().reset(cameras, catalog)
+        self._predicted = None
+
+    # state: (attitude, seen rows, bias (3,), covariance (6, 6))
+    def _propagated(self, state, delta_angles: np.ndarray, coning: np.ndarray, span: np.ndarray):
+        attitude, seen, bias, cov = state
+        for dtheta, cone, h in zip(delta_angles, coning, span, strict=True):
+            phi = dtheta + cone - bias * h
+            attitude = Rotation.from_rotvec(-phi) * attitude
+            if h > 0.0:
+                w = phi / h
+                f = np.zeros((6, 6))
+                f[:3, :3] = -skew(w)
+                f[:3, 3:] = np.eye(3)
+                step = np.eye(6) + f * h
+                cov = step @ cov @ step.T + process_noise(h, self.sigma_v, self.sigma_u)
+        return attitude, seen, bias, cov
+
+    def _prediction(self, state):
+        self._predicted = state
+        return super()._prediction(state[:2])
+
+    def _state_from(self, attitude: Rotation, stars: list[StarMeasurements]):
+        """The posterior at the update's time: the carried prior (or ``attitude`` to start from) updated with the
+        identified stars."""
+        rows = [self._catalog_rows(s.catalog_id) for s in stars]
+        prior = self._predicted
+        self._predicted = None
+        if prior is None:
+            prior = (attitude, rows, np.zeros(3), self.p0.copy())
+        attitude, _, bias, cov = prior
+        return self._measurement_update(attitude, bias, cov, stars, rows)
+
+    def _measurement_update(self, attitude, bias, cov, stars, rows):
+        residuals, jacobians, sigmas = [], [], []
+        for cam, s in zip(self._cameras, stars, strict=True):
+            ids = s.catalog_id
+            known = np.flatnonzero(ids >= 0)
+            if not len(known):
+                continue
+            star_rows = np.searchsorted(self._hip_sorted, ids[known])
+            star_rows = np.minimum(star_rows, len(self._hip_sorted) - 1)
+            found = self._hip_sorted[star_rows] == ids[known]
+            known, star_rows = known[found], self._hip_rows[star_rows[found]]
+            measured = cam.mounting.inv().apply(cam.unproject(s.xy[known]))
+            predicted = attitude.apply(self._catalog.unit[star_rows])
+            sigma = self.centroid_noise_px / min(cam.fx, cam.fy)
+            for m, p in zip(measured, predicted, strict=True):
+                h = np.zeros((3, 6))
+                h[:, :3] = -skew(p)
+                residuals.append(m - p)
+                jacobians.append(h)
+                sigmas.append(sigma)
+        accepted = []
+        for nu, h, sigma in zip(residuals, jacobians, sigmas, strict=True):
+            s_matrix = h @ cov @ h.T + sigma**2 * np.eye(3)
+            accepted.append(float(nu @ np.linalg.solve(s_matrix, nu)) <= self.gate)
+        self.stars_rejected = len(accepted) - int(np.sum(accepted))
+        keep = [i for i, ok in enumerate(accepted) if ok]
+        self.stars_used, self.frame_rejected = len(keep), False
+        if keep:
+            h = np.vstack([jacobians[i] for i in keep])
+            nu = np.concatenate([residuals[i] for i in keep])
+            r = np.diag(np.repeat([sigmas[i] ** 2 for i in keep], 3))
+            s_matrix = h @ cov @ h.T + r
+            nis = float(nu @ np.linalg.solve(s_matrix, nu))
+            if nis > chi2.ppf(FRAME_CONFIDENCE, 2 * len(keep)):
+                self.frame_rejected, self.stars_used = True, 0
+            else:
+                gain = np.linalg.solve(s_matrix, h @ cov).T
+                dx = gain @ nu
+                attitude = Rotation.from_rotvec(dx[:3]) * attitude
+                bias = bias + dx[3:]
+                joseph = np.eye(6) - gain @ h
+                cov = joseph @ cov @ joseph.T + gain @ r @ gain.T
+        return attitude, rows, bias, 0.5 * (cov + cov.T)
+
+    def posterior(self) -> tuple[Rotation, np.ndarray, np.ndarray] | None:
+        """The filtered attitude (inertial -> body) at the last update, the gyro bias estimate (3,) rad/s (body
+        frame) and the error covariance (6, 6) (rad^2, rad^2/s, rad^2/s^2); None before the first update."""
+        if self._state is None:
+            return None
+        attitude, _, bias, cov = self._state
+        return attitude, bias.copy(), cov.copy()

@@ -1,0 +1,124 @@
+"""The MEKF: covariance propagation against its closed form at rest, bias convergence on a constant bias, NEES inside
+its chi-square bounds over a seeded Monte Carlo, a planted false star rejected, and the filter in the pipeline."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from starenv import scenario
+from starenv.agents.base import AttitudeFilter, StarMeasurements, StepInput
+from starenv.agents.fusion import MekfPredictor, process_noise
+from starenv.agents.pipeline import Pipeline
+from starenv.episode import run_episode
+from starenv.env import StarSensorEnv
+from starenv.sim.conventions import ARCSEC, DEG
+from starenv.sim.gyro import GyroSamples
+from starenv.sim.sky import load_catalog
+
+CAMERA = scenario.load("paper_000").heads[0].calibrated  # 512^2, f = 2450 px
+CATALOG = load_catalog(7.0, 2026.0)
+TRUTH = Rotation.from_euler("zyx", [30.0, -10.0, 5.0], degrees=True)
+GYRO_HZ, FRAME_HZ = 100.0, 10.0
+
+
+def stars_at(attitude: Rotation, rng, noise_px: float) -> StarMeasurements:
+    """The catalogue stars imaged at ``attitude``, with their ids and Gaussian centroid noise."""
+    to_camera = CAMERA.inertial_to_camera(attitude)
+    rows = CATALOG.cone(to_camera.inv().apply([0.0, 0.0, 1.0]), CAMERA.half_diagonal)
+    xy, front = CAMERA.project(to_camera.apply(CATALOG.unit[rows]))
+    keep = front & CAMERA.in_frame(np.nan_to_num(xy, nan=-1e9))
+    return StarMeasurements(xy[keep] + rng.normal(0.0, noise_px, (np.count_nonzero(keep), 2)),
+                            catalog_id=CATALOG.hip[rows[keep]])
+
+
+def run(filt: MekfPredictor, bias: np.ndarray, seconds: float, rng, noise_px=0.2, arw=0.0) -> list:
+    """A static sensor whose gyro reads ``bias`` (+ white noise of ``arw`` rad/sqrt s): frames at 10 Hz, the filter
+    started from the truth; returns the posteriors."""
+    filt.reset([CAMERA], CATALOG)
+    filt.update(TRUTH, [stars_at(TRUTH, rng, noise_px)], 0.0)
+    out, n = [], int(GYRO_HZ / FRAME_HZ)
+    for k in range(1, int(seconds * FRAME_HZ) + 1):
+        t = (k - 1) / FRAME_HZ + np.arange(1, n + 1) / GYRO_HZ
+        rate = bias + rng.normal(0.0, arw * math.sqrt(GYRO_HZ), (n, 3))
+        step = StepInput([np.zeros((CAMERA.height, CAMERA.width), np.uint16)], np.array([True]), k / FRAME_HZ, 0.01,
+                         GyroSamples(t, rate, 1.0 / GYRO_HZ), [CAMERA])
+        filt.predict(step)
+        filt.update(TRUTH, [stars_at(TRUTH, rng, noise_px)], k / FRAME_HZ)
+        out.append(filt.posterior())
+    return out
+
+
+def test_covariance_at_rest_follows_the_closed_form():
+    """With no rate and no measurement, P_thth(T) = P_thth(0) + P_bb(0) T^2 + sv^2 T + su^2 T^3 / 3 and
+    P_thb(T) = P_bb(0) T + su^2 T^2 / 2 (exact for the discrete model: F is nilpotent at rest)."""
+    filt = MekfPredictor(arw_deg_rthr=0.1, rrw_deg_hr_rthr=2.0)
+    p0 = np.diag([1e-8] * 3 + [1e-10] * 3)
+    h, n = 0.01, 1000
+    state = (Rotation.identity(), [], np.zeros(3), p0)
+    _, _, _, cov = filt._propagated(state, np.zeros((n, 3)), np.zeros((n, 3)), np.full(n, h))
+    t, sv, su = n * h, filt.sigma_v, filt.sigma_u
+    np.testing.assert_allclose(cov[0, 0], 1e-8 + 1e-10 * t**2 + sv**2 * t + su**2 * t**3 / 3, rtol=1e-9)
+    np.testing.assert_allclose(cov[0, 3], 1e-10 * t + su**2 * t**2 / 2, rtol=1e-9)
+    np.testing.assert_allclose(cov[3, 3], 1e-10 + su**2 * t, rtol=1e-9)
+    assert sv == pytest.approx(0.1 * DEG / 60) and su == pytest.approx(2.0 * DEG / 3600 / 60)
+    np.testing.assert_allclose(process_noise(h, sv, su)[0, 3], su**2 * h**2 / 2)
+
+
+def test_a_constant_bias_is_estimated():
+    """A 36 deg/h bias on every axis, read by a noiseless gyro on a static sensor: within 5 % after 20 s."""
+    bias = np.full(3, 36.0 * DEG / 3600.0)
+    post = run(MekfPredictor(arw_deg_rthr=0.01, rrw_deg_hr_rthr=0.01, initial_bias_sigma_deg_hr=100.0), bias, 20.0,
+               np.random.default_rng(0))
+    estimate = post[-1][1]
+    assert np.all(np.abs(estimate - bias) < 0.05 * np.abs(bias))
+    assert (post[-1][0] * TRUTH.inv()).magnitude() < 10.0 * ARCSEC  # roll about a 4 deg field is the loose axis
+
+
+def test_nees_is_consistent_over_a_seeded_monte_carlo():
+    """20 runs of 5 s with ARW noise matching the filter's model: the mean attitude NEES at the end lies inside the
+    two-sided 95 % chi-square bounds for 20 x 3 degrees of freedom."""
+    arw = 0.05  # deg/sqrt(h)
+    nees = []
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        filt = MekfPredictor(arw_deg_rthr=arw, rrw_deg_hr_rthr=1e-6, initial_bias_sigma_deg_hr=1e-3)
+        attitude, _, cov = run(filt, np.zeros(3), 5.0, rng, noise_px=0.2, arw=arw * DEG / 60)[-1]
+        error = (attitude * TRUTH.inv()).as_rotvec()  # A_est = exp(-[dtheta]) A_true
+        nees.append(float(error @ np.linalg.solve(cov[:3, :3], error)))
+    low, high = chi2.ppf([0.025, 0.975], 60) / 20
+    assert low <= np.mean(nees) <= high
+
+
+def test_a_planted_false_star_is_rejected():
+    rng = np.random.default_rng(3)
+    filt = MekfPredictor()
+    filt.reset([CAMERA], CATALOG)
+    stars = stars_at(TRUTH, rng, 0.1)
+    wrong = stars.catalog_id.copy()
+    wrong[0] = CATALOG.hip[np.argmax(CATALOG.unit @ -TRUTH.inv().apply([0.0, 0.0, 1.0]))]  # a star behind the sensor
+    filt.update(TRUTH, [StarMeasurements(stars.xy, catalog_id=wrong)], 0.0)
+    assert filt.stars_rejected == 1 and filt.stars_used == len(stars) - 1
+    with_false = filt.posterior()
+    filt.reset([CAMERA], CATALOG)
+    filt.update(TRUTH, [StarMeasurements(stars.xy[1:], catalog_id=stars.catalog_id[1:])], 0.0)
+    assert filt.stars_rejected == 0
+    np.testing.assert_allclose(with_false[0].as_quat(), filt.posterior()[0].as_quat(), atol=1e-15)
+
+
+def test_the_filter_is_the_pipelines_estimate_and_beats_frame_by_frame_roll():
+    """paper_000 at 1 deg/s about X, 30 steps: the filter's roll error RMS is under half the classical pipeline's
+    (measured: 39" -> 14" over 60 steps)."""
+    env = StarSensorEnv("paper_000", overrides={"motion.rate_dps": [1.0, 0.0, 0.0]})
+    gyro = env.scenario.gyro
+    options = {"predictor": {"arw_deg_rthr": gyro.arw_deg_rthr, "rrw_deg_hr_rthr": gyro.rrw_deg_hr_rthr,
+                             "bias_instability_deg_hr": gyro.bias_instability_deg_hr}}
+    fused = Pipeline.for_scenario(env.scenario, {"predictor": "starenv.agents.fusion:MekfPredictor"}, options)
+    assert isinstance(fused.agents["predictor"], AttitudeFilter)
+    rms = {}
+    for name, pipe in (("classical", Pipeline.for_scenario(env.scenario)), ("filter", fused)):
+        records = run_episode(env, pipe, seed=0, steps=30).records
+        rms[name] = math.sqrt(np.mean([r["roll_error_arcsec"] ** 2 for r in records[5:]]))
+    assert rms["filter"] < 0.5 * rms["classical"]

@@ -12,8 +12,8 @@ from starenv import scenario
 from starenv.agents.base import AttitudeFilter, StarMeasurements, StepInput
 from starenv.agents.fusion import MekfPredictor, process_noise
 from starenv.agents.pipeline import Pipeline
-from starenv.episode import run_episode
 from starenv.env import StarSensorEnv
+from starenv.episode import run_episode
 from starenv.sim.conventions import ARCSEC, DEG
 from starenv.sim.gyro import GyroSamples
 from starenv.sim.sky import load_catalog

@@ -21,16 +21,16 @@ from __future__ import annotations
 
 import hashlib
 import json
+import operator
 import os
 import sys
 import tempfile
-from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Iterable
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 
 from starenv.bench.spec import MCAP_RECORDER, BenchError, RunSpec
+from starenv.parallel import local_executor, ray_executor
 
 LATENCY_PREFIX = "latency_"
 
@@ -162,53 +162,6 @@ def check_writable(out: Path) -> None:
         raise BenchError(f"--out {out}: expected a folder that can be created and written ({exc})") from exc
 
 
-def _local(jobs: int) -> Callable:
-    def submit_all(tasks):
-        if jobs <= 1:
-            for args in tasks:
-                yield args[0], execute(*args)
-            return
-        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"))
-        try:
-            futures = {pool.submit(execute, *args): args[0] for args in tasks}
-            for fut in as_completed(futures):
-                yield futures[fut], fut.result()
-        finally:  # on an error or an interrupt, runs not yet started are dropped, not run to the end
-            pool.shutdown(wait=True, cancel_futures=True)
-
-    return submit_all
-
-
-def _ray(address: str | None, options: dict | None = None) -> Callable:
-    try:
-        import ray
-    except ImportError as exc:
-        raise BenchError("--ray: the ray package is not installed (install the 'ray' extra: "
-                         "pip install 'starenv[ray]')") from exc
-
-    def submit_all(tasks):
-        if not ray.is_initialized():
-            root = str(Path(__file__).resolve().parent.parent.parent)
-            env = {"PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
-            for key in ("STARENV_CACHE_DIR",):
-                if key in os.environ:
-                    env[key] = os.environ[key]
-            ray.init(address=address or None, include_dashboard=False, runtime_env={"env_vars": env},
-                     log_to_driver=False, **(options or {}))
-        remote = ray.remote(execute)
-        pending = {remote.remote(*args): args[0] for args in tasks}
-        try:
-            while pending:
-                done, _ = ray.wait(list(pending), num_returns=1)
-                for ref in done:
-                    yield pending.pop(ref), ray.get(ref)
-        finally:
-            for ref in pending:
-                ray.cancel(ref)
-
-    return submit_all
-
-
 def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str | None = None,
               use_ray: bool = False, ray_options: dict | None = None, progress: bool = True,
               log=print) -> list[Path]:
@@ -222,7 +175,12 @@ def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str 
 
     out = Path(out)
     check_writable(out)
-    executor = _ray(ray_address, ray_options) if use_ray else _local((os.cpu_count() or 1) if jobs is None else jobs)
+    key = operator.itemgetter(0)
+    jobs = (os.cpu_count() or 1) if jobs is None else jobs
+    if use_ray:
+        executor = ray_executor(execute, key, ray_address, ray_options, BenchError)
+    else:
+        executor = local_executor(execute, key, jobs)
     todo, reused = [], []
     for run in bench.runs:
         why = damage(run_file(out, run), run)

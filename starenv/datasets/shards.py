@@ -15,19 +15,18 @@ from __future__ import annotations
 import importlib.metadata
 import io
 import json
+import operator
 import os
 import sys
 import tempfile
 import zipfile
-from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
 from starenv.datasets.samples import CENTROID_FIELDS, MAIN_STAR_FIELDS, sample
 from starenv.datasets.spec import FORMAT_VERSION, DatasetError, DatasetSpec, load_spec
+from starenv.parallel import local_executor, ray_executor
 
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 
@@ -102,51 +101,6 @@ def is_complete(spec: DatasetSpec, out: str | Path, shard: int) -> bool:
         spec.shard_range(shard))
 
 
-def _local(jobs: int) -> Callable:
-    def submit_all(tasks):
-        if jobs <= 1:
-            for args in tasks:
-                yield args[2], build_shard(*args)
-            return
-        pool = ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"))
-        try:
-            futures = {pool.submit(build_shard, *args): args[2] for args in tasks}
-            for fut in as_completed(futures):
-                yield futures[fut], fut.result()
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
-
-    return submit_all
-
-
-def _ray(address: str | None, options: dict | None = None) -> Callable:
-    try:
-        import ray
-    except ImportError as exc:
-        raise DatasetError("--ray: the ray package is not installed (pip install 'starenv[ray]')") from exc
-
-    def submit_all(tasks):
-        if not ray.is_initialized():
-            root = str(Path(__file__).resolve().parent.parent.parent)
-            env = {"PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
-            if "STARENV_CACHE_DIR" in os.environ:
-                env["STARENV_CACHE_DIR"] = os.environ["STARENV_CACHE_DIR"]
-            ray.init(address=address or None, include_dashboard=False, runtime_env={"env_vars": env},
-                     log_to_driver=False, **(options or {}))
-        remote = ray.remote(build_shard)
-        pending = {remote.remote(*args): args[2] for args in tasks}
-        try:
-            while pending:
-                done, _ = ray.wait(list(pending), num_returns=1)
-                for ref in done:
-                    yield pending.pop(ref), ray.get(ref)
-        finally:
-            for ref in pending:
-                ray.cancel(ref)
-
-    return submit_all
-
-
 def build_dataset(spec: DatasetSpec | str | Path, out: str | Path, jobs: int | None = None, use_ray: bool = False,
                   ray_address: str | None = None, ray_options: dict | None = None, progress: bool = True,
                   log=print) -> list[Path]:
@@ -181,7 +135,12 @@ def build_dataset(spec: DatasetSpec | str | Path, out: str | Path, jobs: int | N
     reused = spec.n_shards - len(todo)
     if reused:
         log(f"reusing {reused} complete shard(s) in {out}")
-    executor = _ray(ray_address, ray_options) if use_ray else _local((os.cpu_count() or 1) if jobs is None else jobs)
+    key = operator.itemgetter(2)
+    jobs = (os.cpu_count() or 1) if jobs is None else jobs
+    if use_ray:
+        executor = ray_executor(build_shard, key, ray_address, ray_options, DatasetError)
+    else:
+        executor = local_executor(build_shard, key, jobs)
     done = spec.samples - sum(len(spec.shard_range(s)) for s in todo)
     bar = tqdm(total=spec.samples, initial=done, unit="sample", disable=not progress, file=sys.stderr,
                desc=spec.name)

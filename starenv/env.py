@@ -42,10 +42,11 @@ Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
 
 * ``truth`` (of the returned observation's frame): ``frame`` int (index), ``time_s`` float (s, mid-exposure),
   ``attitude`` float64 (4,) ``[x, y, z, w]`` (ICRS -> body at mid-exposure), ``body_rate`` float64 (3,) (rad/s, body
-  frame), ``dropped`` list of bool per head, ``stars`` list per head of dicts of arrays, one row per star on the
-  frame: ``catalog_id`` (HIP number), ``magnitude`` (Hipparcos Hp), ``xy_mid`` / ``xy_centroid`` / ``xy_start`` /
-  ``xy_end`` (n, 2) px (distorted pixel coordinates; mid-exposure position, trail centroid, trail ends),
-  ``electrons`` and ``peak_electrons`` (e-; total and brightest pixel), ``detectable`` bool.
+  frame), ``gyro_bias`` float64 (3,) (rad/s, gyro axes: the total bias of the last gyro sample delivered with the
+  frame, at the end of its exposure window), ``dropped`` list of bool per head, ``stars`` list per head of dicts of
+  arrays, one row per star on the frame: ``catalog_id`` (HIP number), ``magnitude`` (Hipparcos Hp), ``xy_mid`` /
+  ``xy_centroid`` / ``xy_start`` / ``xy_end`` (n, 2) px (distorted pixel coordinates; mid-exposure position, trail
+  centroid, trail ends), ``electrons`` and ``peak_electrons`` (e-; total and brightest pixel), ``detectable`` bool.
 * ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int,
   ``available`` bool, ``within_threshold`` bool (error < ``availability_threshold_arcsec``), ``attitude`` (empty when
   unavailable, so that vector envs can merge the infos) ``{"total_arcsec": float, "heads": [{"pitch_arcsec",
@@ -241,6 +242,7 @@ class StarSensorEnv(gym.Env):
             "time_s": frame.t_mid,
             "attitude": frame.attitude.as_quat(),
             "body_rate": frame.body_rate,
+            "gyro_bias": frame.gyro_bias,
             "dropped": [h.dropped for h in frame.heads],
             "stars": [h.truth.as_dict() for h in frame.heads],
         }

@@ -4,7 +4,8 @@
 the pipeline turns observation ``k`` into an action, ``env.step`` scores it against frame ``k``'s truth, and each
 observer receives a :class:`StepLog` that holds frame ``k``, its truth, the action and its scores together.  When the
 pipeline has a deblurrer, the flat record also holds the restoration scores of frame ``k`` (``restoration_*`` keys,
-pooled over heads, see :func:`~starenv.scoring.score_restoration`).
+pooled over heads, see :func:`~starenv.scoring.score_restoration`); when it is a filter, its gyro bias error and
+attitude NEES against frame ``k``'s truth (``gyro_bias_error_deg_hr``, ``attitude_nees``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import Policy, StepReport
 from starenv.scoring import flatten, pool_restoration, score_restoration
@@ -85,6 +87,7 @@ def run_episode(env, pipeline: Policy | None = None, seed: int | None = None, st
             report = pipeline.report if pipeline is not None else StepReport()
             latency = dict(report.latency_s)
             restoration = _restoration_scores(env, report, truth)
+            restoration.update(_filter_scores(report, truth, action))
             next_obs, _, terminated, truncated, info = env.step(action)
             record = flatten(info["scores"], latency)
             record.update(restoration)
@@ -105,6 +108,20 @@ def run_episode(env, pipeline: Policy | None = None, seed: int | None = None, st
         for o in started:
             o.close(error)
     return result
+
+
+def _filter_scores(report: StepReport, truth: dict, action: dict | None) -> dict[str, float]:
+    """A filter's estimate against the frame's truth: ``gyro_bias_error_deg_hr`` (norm of the bias error) and
+    ``attitude_nees`` (the attitude error's squared Mahalanobis distance under the filter's covariance; chi-square
+    with 3 degrees of freedom when the filter is consistent).  Empty without a filter."""
+    out = {}
+    if report.gyro_bias is not None:
+        error = np.asarray(report.gyro_bias) - np.asarray(truth["gyro_bias"])
+        out["gyro_bias_error_deg_hr"] = float(np.degrees(np.linalg.norm(error)) * 3600.0)
+    if report.covariance is not None and action is not None and action.get("attitude_valid", 1):
+        error = (Rotation.from_quat(action["attitude"]) * Rotation.from_quat(truth["attitude"]).inv()).as_rotvec()
+        out["attitude_nees"] = float(error @ np.linalg.solve(report.covariance[:3, :3], error))
+    return out
 
 
 def _restoration_scores(env, report: StepReport, truth: dict) -> dict[str, float | None]:

@@ -219,3 +219,15 @@ def test_bad_call_arguments_raise():
         gyro.sample_until(lambda t: np.zeros((np.size(t), 2)), 1.0)
     with pytest.raises(ValueError, match="taus"):
         allan_deviation(np.zeros(100), 0.01, np.array([0.6]))
+
+
+def test_the_bias_truth_is_what_the_samples_carry():
+    """A static gyro with only a constant bias and a rate random walk (no ARW, scale factor or quantization) reads
+    exactly its bias: the truth after a record is the record's last sample."""
+    spec = GyroSpec(rate_hz=200.0, arw_deg_rthr=0.0, rrw_deg_hr_rthr=5.0, bias_instability_deg_hr=0.0,
+                    bias_deg_hr=(10.0, -20.0, 30.0))
+    gyro = Gyro(spec, np.random.default_rng(4))
+    np.testing.assert_allclose(gyro.bias_rad_s, np.radians([10.0, -20.0, 30.0]) / 3600.0, rtol=1e-12)
+    record = gyro.sample_until(lambda t: np.zeros((len(t), 3)), 1.0)
+    np.testing.assert_array_equal(gyro.bias_rad_s, record.rate[-1])
+    assert not np.allclose(record.rate[0], record.rate[-1])  # the walk moved it

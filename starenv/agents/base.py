@@ -179,13 +179,15 @@ class Restoration:
 @dataclass
 class StepReport:
     """What a policy reports about its last step: wall time per role (s), where the attitude came from ("solved",
-    "predicted" or "none"), per head the restoration (None where nothing was restored; empty without a deblurrer)
-    and the detector that scores restorations (None without one)."""
+    "predicted" or "none"), per head the restoration (None where nothing was restored; empty without a deblurrer),
+    the detector that scores restorations (None without one), and a filter's gyro bias estimate and covariance."""
 
     latency_s: dict[str, float] = field(default_factory=dict)
     source: str = "none"
     restorations: list[Restoration | None] = field(default_factory=list)
     detector: StarDetector | None = None
+    gyro_bias: np.ndarray | None = None  # (3,) rad/s, a filter's bias estimate
+    covariance: np.ndarray | None = None  # (6, 6) a filter's error covariance (attitude rad^2 first, then bias)
 
 
 @runtime_checkable

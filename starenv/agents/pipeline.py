@@ -275,7 +275,7 @@ class Pipeline:
             # a filter fuses the measured stars and its posterior is the action (its own prediction when none)
             if attitude is not None:
                 self._timed("predictor", ag["predictor"].update, attitude, identified, step.time_s)
-                attitude = ag["predictor"].posterior()[0]
+                attitude, report.gyro_bias, report.covariance = ag["predictor"].posterior()
         elif attitude is not None and ag["predictor"] is not None:
             carried = identified if report.source == "solved" else prediction.stars
             self._timed("predictor", ag["predictor"].update, attitude, carried, step.time_s)

@@ -166,6 +166,13 @@ class Gyro:
         self._gm_state = self._gm_decay * gm_sigma_rad_s * rng.standard_normal(3)[None, :]
         self._quanta_accumulated = np.zeros(3)  # delta-angle accumulated since t = 0, in quanta
         self._samples_delivered = 0
+        self._last_bias = self._bias_rad_s + self._gm_state[0] / self._gm_decay  # the bias before the first sample
+
+    @property
+    def bias_rad_s(self) -> np.ndarray:
+        """The total bias (3,) rad/s (gyro axes, the body axes up to the misalignment) of the last delivered sample:
+        constant + rate random walk + Gauss-Markov bias; before any sample, the bias at t = 0."""
+        return self._last_bias.copy()
 
     @property
     def last_time_s(self) -> float:
@@ -210,6 +217,8 @@ class Gyro:
                                             zi=self._rrw_state)
         gm_bias, self._gm_state = lfilter([self._gm_step_rad_s], [1.0, -self._gm_decay], normals[:, 2], axis=0,
                                           zi=self._gm_state)
+        if n:
+            self._last_bias = self._bias_rad_s + rrw_bias[-1] + gm_bias[-1]
         measured = (mean_rate @ self._sensor_matrix.T + self._bias_rad_s + rrw_bias + gm_bias
                     + self._arw_sigma_rad_s * normals[:, 0])
         if self._quantum_rad > 0.0:

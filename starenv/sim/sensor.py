@@ -83,7 +83,7 @@ class Frame:
     body_rate: np.ndarray
     heads: list[HeadFrame]
     gyro: GyroSamples
-
+    gyro_bias: np.ndarray  # (3,) rad/s: the gyro's total bias at its last sample delivered with this frame
 
 class StarSensor:
     """Steps a :class:`SensorSpec` (e.g. a scenario): call :meth:`reset` with a seed, then :meth:`next_frame`."""
@@ -152,6 +152,7 @@ class StarSensor:
             body_rate=sc.trajectory.body_rate(t_mid),
             heads=heads,
             gyro=gyro,
+            gyro_bias=self.gyro.bias_rad_s,
         )
 
     def still_frame(self, head: int, truth: StarTruth) -> np.ndarray:

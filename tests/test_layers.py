@@ -1,7 +1,7 @@
 """The package's layers run one way: every import (module level or inside a function) of a starenv module names a
 module of its own layer or a lower one.  Lowest first:
 
-0. ``checks``, ``parallel`` (argument checks, task executors: no starenv imports);
+0. ``checks``, ``files``, ``parallel`` (argument checks, atomic files, task executors: no starenv imports);
 1. ``sim`` (the simulator: sky, motion, gyro, optics, photometry, render, imager, drops, sensor);
 2. ``config``, ``scenario`` (TOML files -> simulator models);
 3. ``datasets`` (samples drawn from the simulator for learning);
@@ -20,7 +20,7 @@ import starenv
 
 ROOT = Path(starenv.__file__).resolve().parent
 LAYERS = {
-    "checks": 0, "parallel": 0, "sim": 1, "config": 2, "scenario": 2, "datasets": 3, "agents": 4,
+    "checks": 0, "files": 0, "parallel": 0, "sim": 1, "config": 2, "scenario": 2, "datasets": 3, "agents": 4,
     "env": 5, "episode": 5, "scoring": 5, "view": 5, "registration": 5, "wrappers": 5,
     "record": 6, "bench": 6, "cli": 6, "__init__": 6,
 }

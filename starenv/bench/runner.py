@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from starenv.bench.spec import MCAP_RECORDER, BenchError, RunSpec
+from starenv.files import atomic_file
 from starenv.parallel import local_executor, ray_executor
 
 LATENCY_PREFIX = "latency_"
@@ -128,23 +129,14 @@ def damage(path: Path, run: RunSpec) -> str | None:
 
 
 def write_run(path: Path, run: RunSpec, result: RunResult) -> None:
-    """Write a run file atomically: a temporary file in the same folder, flushed, then ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write a run file atomically (:func:`starenv.files.atomic_file`)."""
     header = {"run_id": run.run_id, "digest": run.digest, "identity": run.identity()}
     body = [json.dumps({"step": k, **rec}, sort_keys=True) for k, rec in enumerate(result.records)]
     footer = {"complete": True, "steps": len(result.records), "digest": run.digest, "steps_sha256": steps_sha256(body),
               "dropped": result.dropped, "lost_at": result.lost_at, "wall_s": result.wall_s}
     lines = [json.dumps(header, sort_keys=True), *body, json.dumps(footer, sort_keys=True)]
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write("\n".join(lines) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path, "w", encoding="utf-8") as f:
+        f.write("\n".join(lines) + "\n")
 
 
 def comparable(records: Iterable[dict]) -> list[dict]:

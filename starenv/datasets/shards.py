@@ -18,7 +18,6 @@ import json
 import operator
 import os
 import sys
-import tempfile
 import zipfile
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import numpy as np
 
 from starenv.datasets.samples import CENTROID_FIELDS, MAIN_STAR_FIELDS, sample
 from starenv.datasets.spec import FORMAT_VERSION, DatasetError, DatasetSpec, load_spec
+from starenv.files import atomic_file
 from starenv.parallel import local_executor, ray_executor
 
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
@@ -45,21 +45,11 @@ def shard_path(out: str | Path, shard: int) -> Path:
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     """An uncompressed .npz (readable by ``np.load``) with fixed timestamps, written atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
-                for name in sorted(arrays):
-                    buf = io.BytesIO()
-                    np.lib.format.write_array(buf, np.ascontiguousarray(arrays[name]), allow_pickle=False)
-                    zf.writestr(zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_TIME), buf.getvalue())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as f, zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name in sorted(arrays):
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.ascontiguousarray(arrays[name]), allow_pickle=False)
+            zf.writestr(zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_TIME), buf.getvalue())
 
 
 def shard_arrays(spec: DatasetSpec, shard: int) -> dict[str, np.ndarray]:
@@ -127,10 +117,8 @@ def build_dataset(spec: DatasetSpec | str | Path, out: str | Path, jobs: int | N
         text = json.dumps({"name": spec.name, "kind": spec.kind, "spec_digest": spec.digest,
                            "starenv_version": _version(), "format_version": FORMAT_VERSION, "samples": spec.samples,
                            "n_shards": spec.n_shards, "spec": spec.to_dict()}, sort_keys=True, indent=1, default=list)
-        fd, tmp = tempfile.mkstemp(prefix=".dataset.json.", dir=out)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
+        with atomic_file(manifest, "w", encoding="utf-8") as f:
             f.write(text + "\n")
-        os.replace(tmp, manifest)
     todo = [s for s in range(spec.n_shards) if not is_complete(spec, out, s)]
     reused = spec.n_shards - len(todo)
     if reused:

@@ -35,11 +35,9 @@ Cache
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import os
-import tempfile
 import warnings
 import zipfile
 import zlib
@@ -51,6 +49,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from starenv.checks import finite, in_range
+from starenv.files import atomic_file
 from starenv.sim.conventions import ARCSEC, radec_to_unit
 
 HIP_EPOCH = 1991.25  # Julian year of the Hipparcos-2 positions
@@ -222,16 +221,8 @@ def save_npz_atomic(file: Path, arrays: dict[str, np.ndarray], what: str) -> Non
     ``os.replace`` it into place, so a reader never sees half a file; a cache that cannot be written only warns
     (``what`` names it)."""
     try:
-        file.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(prefix=file.name + ".", suffix=".tmp", dir=file.parent)
-        try:
-            with os.fdopen(handle, "wb") as out:
-                np.savez(out, **arrays, **{CONTENT_KEY: np.str_(content_digest(arrays))})
-            os.replace(temporary, file)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(temporary)
-            raise
+        with atomic_file(file) as out:
+            np.savez(out, **arrays, **{CONTENT_KEY: np.str_(content_digest(arrays))})
     except OSError as exc:
         warnings.warn(f"could not write the {what} cache {file}: {exc}", RuntimeWarning, stacklevel=3)
 

@@ -25,7 +25,8 @@ from starenv.sim.render import StarTruth
 @dataclass
 class StepLog:
     """Everything about step ``index``: observation ``k`` (what the sensor delivered), the truth of that frame, the
-    pipeline's action for it (None without a pipeline), its scores (``info["scores"]``) and the flat score record."""
+    pipeline's action for it (None without a pipeline), its scores (``info["scores"]``) and the flat score record;
+    for a filtered pipeline also the filter's bias estimate and covariance (None otherwise)."""
 
     index: int
     obs: dict
@@ -36,6 +37,8 @@ class StepLog:
     source: str  # where the attitude came from: "solved", "predicted" or "none"
     latency_s: dict[str, float]
     pipeline: Any = None
+    gyro_bias: np.ndarray | None = None  # (3,) rad/s body frame: a filter's bias estimate (StepReport.gyro_bias)
+    covariance: np.ndarray | None = None  # (6, 6): a filter's error covariance (StepReport.covariance)
 
 
 class Observer(Protocol):
@@ -92,7 +95,8 @@ def run_episode(env, pipeline: Policy | None = None, seed: int | None = None, st
             record = flatten(info["scores"], latency)
             record.update(restoration)
             result.records.append(record)
-            log = StepLog(k, obs, truth, action, info["scores"], record, report.source, latency, pipeline)
+            log = StepLog(k, obs, truth, action, info["scores"], record, report.source, latency, pipeline,
+                          report.gyro_bias, report.covariance)
             for o in started:
                 o.step(log)
             obs = next_obs

@@ -533,3 +533,99 @@ def test_rerun_review_holds_the_attitude_view_and_gyro_series(run):
     for t, rate in samples:
         t_ns = int(round(t * 1e9))
         np.testing.assert_allclose([gyro[a, t_ns] for a in "xyz"], np.degrees(rate), rtol=1e-12)
+
+
+class Posterior:
+    """Keeps, per step, the fusion filter's own posterior (asked of the filter, not of the step log) and the true
+    gyro bias and attitude."""
+
+    def start(self, env, seed, pipeline):
+        self.filter, self.states = pipeline.agents["predictor"], []
+
+    def step(self, log):
+        self.states.append((*self.filter.posterior(), log.truth["gyro_bias"], log.truth["attitude"],
+                            log.record["attitude_error_arcsec"]))
+
+    def close(self, error=None):
+        pass
+
+
+@pytest.fixture(scope="module")
+def filtered(tmp_path_factory):
+    """paper_000 at 1 deg/s with the MEKF as predictor, recorded to MCAP and live to Rerun."""
+    tmp = tmp_path_factory.mktemp("filtered")
+    env = StarSensorEnv("paper_000", {"motion.rate_dps": [1.0, 0.0, 0.0]})
+    pipe = Pipeline.for_scenario(env.scenario, {"predictor": "starenv.agents.fusion:MekfPredictor"})
+    seen = Posterior()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("CI", "1")
+        run_episode(env, pipe, seed=0, steps=STEPS,
+                    observers=[McapRecorder(tmp / "run.mcap"), RerunRecorder(tmp / "live.rrd"), seen])
+    return tmp, seen.states
+
+
+DEG_HR, ARCSEC_PER_RAD = np.degrees(1.0) * 3600.0, np.degrees(1.0) * 3600.0  # rad/s -> deg/h, rad -> arcsec
+
+
+def test_the_filter_state_is_recorded_as_the_filter_reported_it(filtered, run):
+    """The /filter channel holds, per step, the filter's own attitude, bias (deg/h), the true bias and the square
+    roots of its covariance's diagonal (arcsec, deg/h); a pipeline without a filter writes no /filter channel."""
+    tmp, states = filtered
+    with open(tmp / "run.mcap", "rb") as f:
+        decoded = [(ch, msg) for _, ch, _, msg in make_reader(f, decoder_factories=[DecoderFactory()])
+                   .iter_decoded_messages(topics=["/filter"])]
+    assert len(decoded) == STEPS == len(states)
+    assert {ch.topic for ch, _ in decoded} == {"/filter"}
+    for (_, msg), (attitude, bias, cov, true_bias, *_) in zip(decoded, states, strict=True):
+        np.testing.assert_array_equal(msg.attitude_xyzw, attitude.as_quat())
+        np.testing.assert_allclose(msg.bias_deg_hr, bias * DEG_HR, rtol=1e-14)
+        np.testing.assert_allclose(msg.bias_true_deg_hr, true_bias * DEG_HR, rtol=1e-14)
+        np.testing.assert_allclose(msg.attitude_sigma_arcsec, np.sqrt(np.diag(cov)[:3]) * ARCSEC_PER_RAD, rtol=1e-14)
+        np.testing.assert_allclose(msg.bias_sigma_deg_hr, np.sqrt(np.diag(cov)[3:]) * DEG_HR, rtol=1e-14)
+    assert decoded[-1][1].bias_sigma_deg_hr[0] < decoded[0][1].bias_sigma_deg_hr[0]  # it learns
+    steps = list(read_steps(tmp / "run.mcap"))
+    for s, (attitude, *_) in zip(steps, states, strict=True):
+        np.testing.assert_array_equal(s.filter.attitude, attitude.as_quat())
+    with open(run[0] / "run.mcap", "rb") as f:
+        topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
+    assert "/filter" not in topics and all(s.filter is None for s in read_steps(run[0] / "run.mcap"))
+
+
+def test_the_rerun_review_plots_the_filter_against_truth(filtered, tmp_path):
+    """Live and from the MCAP, per body axis: the attitude error (rotation vector of A_est A_true^T, arcsec) and the
+    bias error (deg/h) beside the filter's +-3 sigma, and the bias estimate beside the truth; the review of a
+    recording without a filter has no filter series."""
+    import rerun as rr
+
+    tmp, states = filtered
+    review = rrd_content(mcap_to_rrd(tmp / "run.mcap", tmp_path / "review.rrd"))
+    assert review == rrd_content(tmp / "live.rrd")
+    series = {}
+    for chunk in rr.chunk.RrdReader(tmp / "live.rrd").stream().to_chunks():
+        if chunk.entity_path.startswith("/filter/"):
+            batch = chunk.to_record_batch()
+            for frame, v in zip(batch.column("frame").to_pylist(), batch.column("Scalars:scalars"), strict=True):
+                series[chunk.entity_path, frame] = v.as_py()[0]
+    assert len(series) == STEPS * 3 * 8
+    for k, (attitude, bias, cov, true_bias, true_attitude, scored) in enumerate(states):
+        error = (attitude * Rotation.from_quat(true_attitude).inv()).as_rotvec() * ARCSEC_PER_RAD
+        sigma = np.sqrt(np.diag(cov))
+        plotted = [series[f"/filter/attitude_error_arcsec/{axis}/error", k] for axis in "xyz"]
+        np.testing.assert_allclose(np.linalg.norm(plotted), scored, rtol=1e-6)  # the scorer's error angle
+        for i, axis in enumerate("xyz"):
+            np.testing.assert_allclose(series[f"/filter/attitude_error_arcsec/{axis}/error", k], error[i], atol=1e-9)
+            np.testing.assert_allclose(series[f"/filter/attitude_error_arcsec/{axis}/plus_3sigma", k],
+                                       3 * sigma[i] * ARCSEC_PER_RAD, rtol=1e-12)
+            np.testing.assert_allclose(series[f"/filter/bias_error_deg_hr/{axis}/minus_3sigma", k],
+                                       -3 * sigma[3 + i] * DEG_HR, rtol=1e-12)
+            np.testing.assert_allclose(series[f"/filter/bias_error_deg_hr/{axis}/error", k],
+                                       (bias[i] - true_bias[i]) * DEG_HR, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(series[f"/filter/bias_deg_hr/{axis}/true", k], true_bias[i] * DEG_HR,
+                                       rtol=1e-12)
+    assert not any(entity.startswith("/filter") for entity, *_ in review_without_filter(tmp_path))
+
+
+def review_without_filter(tmp_path):
+    path = tmp_path / "classical.mcap"
+    record(path, steps=2)
+    return rrd_content(mcap_to_rrd(path, tmp_path / "classical.rrd"))

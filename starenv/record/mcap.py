@@ -24,6 +24,8 @@ metadata's ``time_origin_unix_ns``; the ``/scores`` and ``/gyro`` payloads keep 
   coordinates to parent coordinates), i.e. the inverse of starenv's attitude (ICRS -> body): the rotation written is
   the conjugate of ``truth["attitude"]`` / ``action["attitude"]``;
 * ``/scores``: ``starenv.StepScores`` (``starenv.record.messages``); ``/gyro``: ``starenv.GyroSamples``;
+* ``/filter``: ``starenv.FilterState``, only for a pipeline whose predictor is a fusion filter, on every step it has a
+  state: its attitude, gyro bias estimate, the true bias and the 1-sigma of both (arcsec, deg/h, body axes);
 * ``/log``: ``foxglove.Log``: dropped frames, steps without a solution, and the error that ended a run.
 
 Metadata records: ``starenv.scenario`` (the scenario as TOML, overrides applied), ``starenv.run`` (seed, heads,
@@ -63,7 +65,7 @@ from mcap_protobuf.schema import register_schema
 
 import starenv
 from starenv.record import messages
-from starenv.record.step import ERROR, HeadData, Stars2D, StepData, from_step_log, time_ns
+from starenv.record.step import ERROR, FilterState, HeadData, Stars2D, StepData, from_step_log, time_ns
 from starenv.sim.optics import BrownConrady
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -165,6 +167,11 @@ def encode_step(data: StepData, origin_ns: int = 0) -> list[tuple[str, object]]:
     out.append(("/attitude/true", _transform(data.attitude_true, "body", t)))
     if data.attitude_estimate is not None:
         out.append(("/attitude/estimate", _transform(data.attitude_estimate, "body_estimate", t)))
+    if data.filter is not None:
+        state = messages.classes()["FilterState"](frame=data.frame, time_s=data.time_ns * 1e-9)
+        for name, attr in messages.FILTER_FIELDS.items():
+            getattr(state, name).extend(np.asarray(getattr(data.filter, attr), dtype=np.float64).tolist())
+        out.append(("/filter", state))
     scores = messages.encode_scores(data.frame, data.time_ns * 1e-9, data.source, data.scores, data.record)
     out.append(("/scores", scores))
     gyro = messages.classes()["GyroSamples"](frame=data.frame, t_s=data.gyro_t.tolist(),
@@ -341,6 +348,12 @@ def read_metadata(path: str | os.PathLike) -> dict[str, dict[str, str]]:
         return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
 
 
+def topics(path: str | os.PathLike) -> set[str]:
+    """The topics of a finished recording's channels (from its summary)."""
+    with open(check_finished(path), "rb") as f:
+        return {c.topic for c in make_reader(f).get_summary().channels.values()}
+
+
 def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int, next_frame: int) -> StepData:
     by_topic: dict[str, object] = {}
     logs = []
@@ -365,6 +378,9 @@ def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int, next_fr
         m = by_topic.get(topic)
         return None if m is None else np.array([-m.rotation.x, -m.rotation.y, -m.rotation.z, m.rotation.w])
 
+    state = by_topic.get("/filter")
+    if state is not None:
+        state = FilterState(**{attr: np.array(getattr(state, name)) for name, attr in messages.FILTER_FIELDS.items()})
     gyro = by_topic.get("/gyro")
     gyro_t = np.array(gyro.t_s) if gyro is not None else np.zeros(0)
     rate = (np.column_stack([gyro.rate_x_rad_s, gyro.rate_y_rad_s, gyro.rate_z_rad_s]) if gyro is not None
@@ -373,7 +389,7 @@ def _step_from(group: list[tuple[str, object]], t_ns: int, n_heads: int, next_fr
         frame=int(scores_msg.frame) if scores_msg is not None else next_frame, time_ns=t_ns, heads=heads,
         attitude_true=quat("/attitude/true"), attitude_estimate=quat("/attitude/estimate"),
         source=scores_msg.source if scores_msg is not None else "none", scores=scores, record=record,
-        gyro_t=gyro_t, gyro_rate=rate, logs=logs,
+        gyro_t=gyro_t, gyro_rate=rate, logs=logs, filter=state,
     )
 
 

@@ -4,7 +4,9 @@
 star-level scores per head) and, so that no metric silently vanishes, the whole flat record (``StepLog.record``) as a
 ``map<string, double>`` plus the list of its keys that had no value this step; per-head scores the typed fields do not
 know go to that head's ``extra`` map.  ``starenv.GyroSamples``: the gyro samples delivered with one frame (s, rad/s,
-body frame).  The file is proto2 so that "no value" (Python ``None``) stays distinguishable from 0.
+body frame).  ``starenv.FilterState``: a fusion filter's state at one frame (``starenv.record.step.FilterState``:
+attitude ``[x, y, z, w]`` ICRS -> body, bias estimate and true bias in deg/h, 1-sigma in arcsec and deg/h, body axes).
+The file is proto2 so that "no value" (Python ``None``) stays distinguishable from 0.
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ HEAD_FIELDS = {
 _PY = {DOUBLE: float, INT64: int, BOOL: bool}
 HEAD_ATTITUDE_FIELDS = ("pitch_arcsec", "yaw_arcsec", "roll_arcsec", "cross_boresight_arcsec")
 PACKAGE = "starenv"
+# starenv.FilterState's vector fields: name in the message -> attribute of starenv.record.step.FilterState
+FILTER_FIELDS = {"attitude_xyzw": "attitude", "bias_deg_hr": "bias_deg_hr", "bias_true_deg_hr": "bias_true_deg_hr",
+                 "attitude_sigma_arcsec": "attitude_sigma_arcsec", "bias_sigma_deg_hr": "bias_sigma_deg_hr"}
 
 
 def _field(msg, name: str, number: int, ftype: int, label: int = OPTIONAL, type_name: str | None = None) -> None:
@@ -74,6 +79,12 @@ def _file() -> descriptor_pb2.FileDescriptorProto:
     for i, name in enumerate(("t_s", "rate_x_rad_s", "rate_y_rad_s", "rate_z_rad_s"), 2):
         _field(gyro, name, i, DOUBLE, REPEATED)
         gyro.field[-1].options.packed = True
+    state = fd.message_type.add(name="FilterState")
+    _field(state, "frame", 1, UINT32)
+    _field(state, "time_s", 2, DOUBLE)
+    for i, name in enumerate(FILTER_FIELDS, 3):
+        _field(state, name, i, DOUBLE, REPEATED)
+        state.field[-1].options.packed = True
     return fd
 
 
@@ -82,7 +93,7 @@ def classes() -> dict[str, type]:
     """The message classes by short name (``StepScores``, ``GyroSamples``, ...), built once per process."""
     pool = descriptor_pool.DescriptorPool()
     pool.Add(_file())
-    names = ("HeadAttitudeError", "AttitudeError", "HeadScores", "StepScores", "GyroSamples")
+    names = ("HeadAttitudeError", "AttitudeError", "HeadScores", "StepScores", "GyroSamples", "FilterState")
     return {n: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{PACKAGE}.{n}")) for n in names}
 
 

@@ -15,6 +15,10 @@ Both paths log each step with :func:`log_step`, so they produce the same entitie
   attitude ICRS -> body (conjugated: arrows are body directions written in ICRS); ``attitude/stars/truth`` (green):
   the true stars' trail centroids seen through the calibrated cameras at the true attitude, and
   ``attitude/stars/detections`` (red): the detections at the estimated attitude, on the unit sphere with their ids;
+* ``filter/...`` (a fusion filter's pipeline only), per body axis ``x``, ``y``, ``z``:
+  ``filter/attitude_error_arcsec/{axis}/{error,plus_3sigma,minus_3sigma}`` (the rotation vector of
+  ``A_est A_true^T`` against the filter's own 3-sigma), ``filter/bias_error_deg_hr/{axis}/{error,plus_3sigma,
+  minus_3sigma}`` (estimate - truth) and ``filter/bias_deg_hr/{axis}/{estimate,true}``;
 * ``gyro/rate_dps/{x,y,z}``: every gyro sample (deg/s, body frame) at its own time on ``sim_time`` (on ``frame`` all
   of a step's samples share the frame's index).
 
@@ -36,7 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from starenv import scenario as scenario_mod
-from starenv.record.step import ERROR, INFO, WARNING, StepData, from_step_log
+from starenv.agents.base import AttitudeFilter
+from starenv.record.step import ERROR, INFO, WARNING, FilterState, StepData, from_step_log
 
 APPLICATION_ID = "starenv"
 PIXEL_ORIGIN = 0.5
@@ -62,13 +67,21 @@ def stage_of(metric: str) -> str:
     return "other"
 
 
-def blueprint(n_heads: int):
-    """The default layout: the heads' frames with overlays on the left, error series and the log on the right."""
+FILTER_VIEWS = {"filter/attitude_error_arcsec": "filter: attitude error vs 3-sigma (arcsec, body axes)",
+                "filter/bias_error_deg_hr": "filter: gyro bias error vs 3-sigma (deg/h)",
+                "filter/bias_deg_hr": "filter: gyro bias estimate and truth (deg/h)"}
+
+
+def blueprint(n_heads: int, with_filter: bool = False):
+    """The default layout: the heads' frames with overlays on the left, error series (and a fusion filter's state
+    when ``with_filter``) and the log on the right."""
     import rerun.blueprint as rrb
 
     frames = rrb.Grid(*[rrb.Spatial2DView(origin=f"head{h}", name=f"head {h}") for h in range(n_heads)])
     series = [rrb.TimeSeriesView(origin=f"metrics/{stage}", name=stage)
               for stage in ("attitude", "detection", "identification", "prediction", "restoration", "latency")]
+    if with_filter:
+        series[1:1] = [rrb.TimeSeriesView(origin=origin, name=name) for origin, name in FILTER_VIEWS.items()]
     sky = rrb.Spatial3DView(origin="attitude", name="attitude: true vs estimate (ICRS)")
     gyro = rrb.TimeSeriesView(origin="gyro", name="gyro (deg/s, body)")
     return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(frames, rrb.Horizontal(sky, gyro), row_shares=[2, 1]),
@@ -76,13 +89,13 @@ def blueprint(n_heads: int):
                                         column_shares=[2, 1]), collapse_panels=True)
 
 
-def open_stream(path: str | os.PathLike, recording_id: str, n_heads: int, name: str):
+def open_stream(path: str | os.PathLike, recording_id: str, n_heads: int, name: str, with_filter: bool = False):
     """A recording stream saving to ``path`` (``.rrd``) with a fixed id, no wall-clock timeline, our blueprint."""
     import rerun as rr
 
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, send_properties=False)
     rec.set_log_time_enabled(False)
-    rec.save(str(path), default_blueprint=blueprint(n_heads))
+    rec.save(str(path), default_blueprint=blueprint(n_heads, with_filter))
     rec.send_recording_name(name)
     return rec
 
@@ -152,6 +165,8 @@ def log_step(rec, data: StepData, cameras=None) -> None:
         else:
             rec.log("attitude/estimate", rr.Clear(recursive=False))
             rec.log("attitude/stars/detections", rr.Clear(recursive=False))
+    if data.filter is not None:
+        _log_filter(rec, data.filter, data.attitude_true)
     if len(data.gyro_t):
         times = rr.TimeColumn("sim_time", duration=np.round(np.asarray(data.gyro_t) * 1e9).astype("timedelta64[ns]"))
         frames = rr.TimeColumn("frame", sequence=np.full(len(data.gyro_t), int(data.frame)))
@@ -160,10 +175,27 @@ def log_step(rec, data: StepData, cameras=None) -> None:
                              columns=rr.Scalars.columns(scalars=values))
 
 
+def _log_filter(rec, state: FilterState, attitude_true: np.ndarray) -> None:
+    """A filter's errors against truth and its 3-sigma bounds, and its bias beside the true one (module docstring)."""
+    import rerun as rr
+    from scipy.spatial.transform import Rotation
+
+    error = (Rotation.from_quat(state.attitude) * Rotation.from_quat(attitude_true).inv()).as_rotvec()
+    series = {"attitude_error_arcsec": (np.degrees(error) * 3600.0, state.attitude_sigma_arcsec),
+              "bias_error_deg_hr": (state.bias_deg_hr - state.bias_true_deg_hr, state.bias_sigma_deg_hr)}
+    for i, axis in enumerate("xyz"):
+        for name, (err, sigma) in series.items():
+            rec.log(f"filter/{name}/{axis}/error", rr.Scalars(float(err[i])))
+            rec.log(f"filter/{name}/{axis}/plus_3sigma", rr.Scalars(3.0 * float(sigma[i])))
+            rec.log(f"filter/{name}/{axis}/minus_3sigma", rr.Scalars(-3.0 * float(sigma[i])))
+        rec.log(f"filter/bias_deg_hr/{axis}/estimate", rr.Scalars(float(state.bias_deg_hr[i])))
+        rec.log(f"filter/bias_deg_hr/{axis}/true", rr.Scalars(float(state.bias_true_deg_hr[i])))
+
+
 def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike, on_step=None) -> Path:
     """Build the Rerun recording of a finished MCAP recording; returns the .rrd path.  ``on_step()`` (optional) is
     called after each step is logged (a progress bar)."""
-    from starenv.record.mcap import check_finished, read_metadata, read_steps
+    from starenv.record.mcap import check_finished, read_metadata, read_steps, topics
 
     mcap_path = check_finished(mcap_path)
     digest = hashlib.sha256()
@@ -177,7 +209,8 @@ def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike, on_st
     n_heads = int(meta["starenv.run"]["heads"])
     name = f"{meta['starenv.scenario']['name']} seed {meta['starenv.run']['seed']}"
     rrd_path = Path(rrd_path)
-    rec = open_stream(rrd_path, str(uuid.UUID(bytes=digest.digest()[:16])), n_heads, name)
+    with_filter = "/filter" in topics(mcap_path)
+    rec = open_stream(rrd_path, str(uuid.UUID(bytes=digest.digest()[:16])), n_heads, name, with_filter)
     cameras = [h.calibrated for h in scenario_mod.load(tomllib.loads(meta["starenv.scenario"]["toml"])).heads]
     for data in read_steps(mcap_path):
         log_step(rec, data, cameras)
@@ -207,7 +240,8 @@ class RerunRecorder:
         key = json.dumps([sc.to_toml(), int(seed), agents]).encode()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         rec_id = str(uuid.UUID(bytes=hashlib.sha256(key).digest()[:16]))
-        self._rec = open_stream(self.path, rec_id, len(sc.heads), f"{sc.name} seed {seed}")
+        with_filter = isinstance(getattr(pipeline, "agents", {}).get("predictor"), AttitudeFilter)
+        self._rec = open_stream(self.path, rec_id, len(sc.heads), f"{sc.name} seed {seed}", with_filter)
 
     def step(self, log) -> None:
         data = from_step_log(log, self._sizes)

@@ -40,6 +40,29 @@ class HeadData:
 
 
 @dataclass
+class FilterState:
+    """A fusion filter's state at one step (``starenv.agents.base.AttitudeFilter``): its attitude ``[x, y, z, w]``
+    ICRS -> body at mid-exposure, its gyro bias estimate and the gyro's true bias (3,) deg/h (body axes), and the
+    1-sigma of its attitude error (3,) arcsec (rotation about the body axes) and of its bias error (3,) deg/h: the
+    square roots of its covariance's diagonal."""
+
+    attitude: np.ndarray
+    bias_deg_hr: np.ndarray
+    bias_true_deg_hr: np.ndarray
+    attitude_sigma_arcsec: np.ndarray
+    bias_sigma_deg_hr: np.ndarray
+
+
+def filter_state(attitude, gyro_bias, covariance, true_bias) -> FilterState:
+    """The :class:`FilterState` of a filter's attitude (``[x, y, z, w]``), bias estimate (3,) rad/s, covariance (6, 6)
+    (rad^2 attitude first, then (rad/s)^2 bias) and the true bias (3,) rad/s."""
+    sigma = np.sqrt(np.diag(np.asarray(covariance, dtype=np.float64)))
+    return FilterState(np.asarray(attitude, dtype=np.float64), np.degrees(np.asarray(gyro_bias)) * 3600.0,
+                       np.degrees(np.asarray(true_bias, dtype=np.float64)) * 3600.0,
+                       np.degrees(sigma[:3]) * 3600.0, np.degrees(sigma[3:]) * 3600.0)
+
+
+@dataclass
 class StepData:
     """Everything recorded about one step."""
 
@@ -54,6 +77,7 @@ class StepData:
     gyro_t: np.ndarray  # (n,) s
     gyro_rate: np.ndarray  # (n, 3) rad/s, body frame
     logs: list[tuple[int, str]] = field(default_factory=list)  # (level, text)
+    filter: FilterState | None = None  # a fusion filter's state; None for other pipelines
 
 
 def time_ns(t_s: float) -> int:
@@ -92,6 +116,9 @@ def from_step_log(log, sizes: list[tuple[int, int]]) -> StepData:
     if action is not None and log.scores["available"]:
         q = np.asarray(action["attitude"], dtype=np.float64)
         estimate = q / np.linalg.norm(q)
+    state = None
+    if log.covariance is not None and action is not None:  # a filter's posterior is the action
+        state = filter_state(action["attitude"], log.gyro_bias, log.covariance, truth["gyro_bias"])
     gyro = obs["gyro"]
     n = int(gyro["count"])
     return StepData(
@@ -99,5 +126,5 @@ def from_step_log(log, sizes: list[tuple[int, int]]) -> StepData:
         attitude_true=np.asarray(truth["attitude"], dtype=np.float64), attitude_estimate=estimate,
         source=log.source, scores=log.scores, record=dict(log.record),
         gyro_t=np.array(gyro["t"][:n], dtype=np.float64), gyro_rate=np.array(gyro["rate"][:n], dtype=np.float64),
-        logs=logs,
+        logs=logs, filter=state,
     )

@@ -10,9 +10,11 @@ QuaternionPredictor`, coning term included) with the bias-corrected rate ``w = d
 discrete noise of angle random walk ``sigma_v`` and bias random walk ``sigma_u``:
 ``Q = [[sv^2 h + su^2 h^3 / 3, su^2 h^2 / 2], [su^2 h^2 / 2, su^2 h]]`` (per axis).  The datasheet values map as
 ``sigma_v = ARW (deg/sqrt h) * pi/180 / 60`` rad/sqrt(s) and ``sigma_u = RRW (deg/h/sqrt h) * pi/180 / 3600 / 60``
-rad/s/sqrt(s); the bias instability ``B`` (deg/h), a Gauss-Markov process, is folded into the bias walk as
-``B^2 / bias_correlation_s`` per second (the walk that reaches ``B`` over the correlation time) -- a choice that keeps
-the state at six, stated here.
+rad/s/sqrt(s); the bias instability ``B`` (deg/h) is the simulator's first-order Gauss-Markov bias
+(``starenv.sim.gyro``: steady-state sigma ``s = 0.664 B / 0.618``, correlation time ``tau``), folded into the bias walk
+as ``2 s^2 / tau`` per second: the variance rate of that process's increments over intervals short against ``tau``.
+The walk does not pull the estimate back to zero as the Gauss-Markov process would, so a constant (uncalibrated) bias
+is estimated too; the state stays at six -- a choice stated here.
 
 Update, per identified star (HIP id in the catalogue): its body-frame unit vector ``b_m`` (the calibrated camera's
 ``unproject`` and mounting) against ``b_hat = A r`` of its catalogue direction ``r``: innovation ``b_m - b_hat``,
@@ -40,6 +42,7 @@ from starenv import checks
 from starenv.agents.base import StarMeasurements
 from starenv.agents.predict import QuaternionPredictor
 from starenv.sim.conventions import ARCSEC, DEG
+from starenv.sim.gyro import GM_PEAK_ADEV_PER_SIGMA, IEEE_FLICKER_FLOOR
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 
@@ -81,7 +84,8 @@ class MekfPredictor(QuaternionPredictor):
         bias_inst = checks.non_negative("bias_instability_deg_hr", bias_instability_deg_hr, unit="deg/h")
         tau = checks.positive("bias_correlation_s", bias_correlation_s, unit="s")
         self.sigma_v = arw * DEG / 60.0
-        self.sigma_u = math.sqrt((rrw * DEG / 3600.0 / 60.0) ** 2 + (bias_inst * DEG / 3600.0) ** 2 / tau)
+        gm_sigma = IEEE_FLICKER_FLOOR * bias_inst / GM_PEAK_ADEV_PER_SIGMA * DEG / 3600.0  # rad/s
+        self.sigma_u = math.sqrt((rrw * DEG / 3600.0 / 60.0) ** 2 + 2.0 * gm_sigma**2 / tau)
         self.centroid_noise_px = checks.positive("centroid_noise_px", centroid_noise_px, unit="px")
         sigma_att = checks.positive("initial_attitude_sigma_arcsec", initial_attitude_sigma_arcsec) * ARCSEC
         sigma_bias = checks.non_negative("initial_bias_sigma_deg_hr", initial_bias_sigma_deg_hr) * DEG / 3600.0

@@ -110,6 +110,20 @@ def test_the_bias_walk_matches_the_simulated_bias_instability():
     np.testing.assert_allclose(np.var(increments), filt.sigma_u**2 * 1.0, rtol=0.1)
 
 
+def test_a_smeared_star_is_weighted_by_its_trail():
+    """A star on the boresight while the gyro reads 10 deg/s about X (bias 1 deg/s estimated) over a 0.1 s exposure:
+    its trail is 0.9 deg long, so its 1-sigma is hypot(0.2 px / f, 1 % of 0.9 deg)."""
+    filt = MekfPredictor(centroid_noise_px=0.2, smear_noise_fraction=0.01)
+    filt.reset([CAMERA], CATALOG)
+    n = 20
+    step = StepInput([np.zeros((CAMERA.height, CAMERA.width), np.uint16)], np.array([True]), 0.1, 0.1,
+                     GyroSamples(np.arange(1, n + 1) / 200.0, np.tile([10.0 * DEG, 0.0, 0.0], (n, 1)), 1 / 200.0),
+                     [CAMERA])
+    filt.predict(step)
+    sigma = filt.star_sigma(CAMERA, np.array([0.0, 0.0, 1.0]), np.array([1.0 * DEG, 0.0, 0.0]))
+    assert sigma == pytest.approx(math.hypot(0.2 / CAMERA.fx, 0.01 * 9.0 * DEG * 0.1), rel=1e-12)
+
+
 def test_nees_is_consistent_over_a_seeded_monte_carlo():
     """20 runs of 5 s with ARW noise matching the filter's model: the mean attitude NEES at the end lies inside the
     two-sided 95 % chi-square bounds for 20 x 3 degrees of freedom."""

@@ -29,9 +29,18 @@ UNITS = {"_dps": "deg/s", "_deg": "deg", "_arcsec": "arcsec", "_hz": "Hz", "_s":
          "_mm": "mm", "_e": "e-", "_rthr": "deg/sqrt(h)"}
 
 
+def sweep_label(sweep: dict) -> str:
+    """A sweep's name in tables: its key, and the axis a magnitude is swept along (``motion.rate_dps about [1, 0,
+    0]``), so that sweeps of one key along different axes stay apart."""
+    axis = sweep.get("axis")
+    if axis is None:
+        return sweep["key"]
+    return f"{sweep['key']} about [{', '.join(_fmt(float(a)) for a in axis)}]"
+
+
 def key_unit(key: str) -> str:
     """The unit a scenario key carries in its name (``motion.rate_dps`` -> ``deg/s``), or ''."""
-    last = key.rsplit(".", 1)[-1]
+    last = key.split(" about ", 1)[0].rsplit(".", 1)[-1]
     return next((u for suffix, u in UNITS.items() if last.endswith(suffix)), "")
 
 
@@ -46,7 +55,8 @@ def aggregate(run_files: list[Path]) -> list[dict]:
         header, steps, _ = read_run(path)
         ident = header["identity"]
         sweep = ident["sweep"] or {}
-        key = (ident["scenario"], sweep.get("key"), _label(sweep.get("value")), ident["pipeline"]["name"])
+        key = (ident["scenario"], sweep_label(sweep) if sweep else None, _label(sweep.get("value")),
+               ident["pipeline"]["name"])
         case = cases.setdefault(key, {"ident": ident, "runs": 0, "records": []})
         case["runs"] += 1
         case["records"].extend(steps)
@@ -202,6 +212,46 @@ def headline(rows: list[dict]) -> str:
             "smallest).\n\n" + "\n".join(lines) + "\n")
 
 
+def _restores(rows: list[dict]) -> bool:
+    """Whether a pipeline's cases carry restoration scores (it has a deblurrer)."""
+    return any(r.get("restoration_stars_after_median") is not None for r in rows)
+
+
+def working_rates(rows: list[dict]) -> str:
+    """Per rate sweep (a ``*rate_dps`` key along an axis): each pipeline's availability at every swept rate, its
+    working rate (:func:`working_limit`) and that rate over the best working rate of the pipelines that do not
+    restore (blurred frames); '' when the bench sweeps no rate."""
+    out = []
+    groups = dict.fromkeys((r["scenario"], r["sweep_key"]) for r in rows
+                           if r["sweep_key"].split(" about ", 1)[0].endswith("rate_dps"))
+    for scenario, key in groups:
+        cases = [r for r in rows if (r["scenario"], r["sweep_key"]) == (scenario, key)
+                 and isinstance(r["sweep_value"], int | float)]
+        values = sorted({r["sweep_value"] for r in cases})
+        per = {p: [r for r in cases if r["pipeline"] == p] for p in dict.fromkeys(r["pipeline"] for r in cases)}
+        limits = {p: working_limit(c) for p, c in per.items()}
+        blurred = [limits[p] for p, c in per.items() if not _restores(c) and limits[p] is not None]
+        base = max(blurred, default=None)
+        steps = sorted({r["steps"] for r in cases})
+        head = ["pipeline", "restores", "working rate", "x blurred", *(_fmt(v) for v in values)]
+        lines = [f"### {scenario}: {key} ({', '.join(map(str, steps))} steps per rate)", "",
+                 "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        for p in sorted(per, key=lambda p: (-(limits[p] if limits[p] is not None else -1.0), p)):
+            at = {r["sweep_value"]: r.get("within_threshold") for r in per[p]}
+            lim = limits[p]
+            ratio = "-" if lim is None or not base else f"{lim / base:.2f}"
+            cells = [p, "yes" if _restores(per[p]) else "no", "none" if lim is None else _fmt(lim), ratio,
+                     *(_fmt(at.get(v)) for v in values)]
+            lines.append("| " + " | ".join(cells) + " |")
+        out.append("\n".join(lines))
+    if not out:
+        return ""
+    return ("## Working rate\n\nAvailability (share of steps within the scenario's threshold) at each swept rate "
+            f"(deg/s); a pipeline's working rate is the largest swept rate that, with every smaller one, has "
+            f"availability >= {WORKING_AVAILABILITY:g}; \"x blurred\": that over the best working rate of the pipelines that do not "
+            "restore.  ID rate against rate: the plots.\n\n" + "\n\n".join(out) + "\n")
+
+
 def _slug(*parts: str) -> str:
     return "-".join("".join(c if c.isalnum() or c in "_-" else "_" for c in p) for p in parts if p)
 
@@ -222,12 +272,10 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
     for (scenario, key), group in groups.items():
         unit = key_unit(key)
         xlabel = f"{key} ({unit})" if unit else key
-        ident_axis = _axis_of(run_files, scenario, key)
-        if ident_axis is not None:
-            xlabel += f" about {list(ident_axis)}"
         for what, cols, ylabel, logy in (
             ("error", ("attitude_error_arcsec_median", "attitude_error_arcsec_p95"), "attitude error (arcsec)", True),
             ("id-rate", ("id_rate_mean",), "ID rate (correct ids / detectable stars)", False),
+            ("availability", ("within_threshold",), "availability (share of steps within the threshold)", False),
         ):
             fig, ax = plt.subplots(figsize=(7, 4.5))
             pipelines = list(dict.fromkeys(r["pipeline"] for r in group))
@@ -257,6 +305,8 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
             ax.set_xlabel(xlabel + xlabel_note)
             ax.set_ylabel(ylabel)
             title = f"{scenario}: {ylabel.split(' (')[0]} vs {key.rsplit('.', 1)[-1]}"
+            if what == "availability":
+                ax.axhline(WORKING_AVAILABILITY, color="k", linewidth=0.8, linestyle=":")
             ax.grid(True, which="both", alpha=0.3)
             made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, key, what)}.png")))
     by_scenario: dict[str, dict[str, dict[str, list[float]]]] = {}
@@ -335,27 +385,20 @@ def _save(fig, ax, title: str, path: Path) -> Path:
     return path
 
 
-def _axis_of(run_files: list[Path], scenario: str, key: str):
-    for f in run_files:
-        ident = read_run(f)[0]["identity"]
-        if ident["scenario"] == scenario and (ident["sweep"] or {}).get("key") == key:
-            return ident["sweep"]["axis"]
-    return None
-
-
 def write_report(bench, run_files: list[Path], out: Path) -> Path:
     """Tables (``summary.md``, ``summary.csv``), plots (``plots/*.png``) and ``report.md`` linking them."""
     out = Path(out)
     rows = aggregate(run_files)
     tables = markdown_tables(rows)
     top = headline(rows)
-    (out / "summary.md").write_text(f"# {bench.name}: summary\n\n{top}\n{tables}", encoding="utf-8")
+    rates = working_rates(rows)
+    (out / "summary.md").write_text(f"# {bench.name}: summary\n\n{top}\n{rates}\n{tables}", encoding="utf-8")
     write_csv(rows, out / "summary.csv")
     plots = plot(rows, run_files, out / "plots")
     lines = [f"# Benchmark report: {bench.name}", ""]
     if bench.description:
         lines += [bench.description, ""]
-    lines += [top]
+    lines += [top, rates] if rates else [top]
     lines += [
         f"Bench file: `{bench.source}`.  {len(run_files)} runs, {sum(r['steps'] for r in rows)} scored steps.  "
         "Per-step scores: [`runs/`](runs/) (one JSON-lines file per run, its identity in the first line).  "

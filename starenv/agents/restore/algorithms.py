@@ -21,7 +21,7 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
-from scipy import fft
+from scipy import fft, ndimage
 from scipy.signal import fftconvolve
 
 from starenv import checks
@@ -214,6 +214,23 @@ def robust_background(image: np.ndarray) -> tuple[float, float]:
     level = float(np.median(sample))
     noise = MAD_TO_SIGMA * float(np.median(np.abs(sample - level)))
     return level, max(noise, 0.5)
+
+
+def streak_candidates(data: np.ndarray, level: float, noise: float, streak: np.ndarray, threshold_sigma: float,
+                      min_area_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate streaks of a frame (DN): the frame less its background ``level`` correlated with the expected trail
+    ``streak`` (the matched filter of a trail); 8-connected components of at least ``min_area_px`` pixels where the
+    response exceeds ``threshold_sigma`` times its noise (white pixel ``noise`` through the filter).  Returns their
+    centroids (k, 2) px (x, y: the trail's centre, as the response of a trail is symmetric about it) and peak
+    responses (k,) in noise sigmas."""
+    template = streak.astype(np.float32)
+    response = cv2.filter2D((data - level).astype(np.float32), cv2.CV_32F, template, borderType=cv2.BORDER_REFLECT)
+    response /= noise * float(np.sqrt(np.sum(streak**2)))
+    above = (response > threshold_sigma).astype(np.uint8)
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(above, connectivity=8, ltype=cv2.CV_32S)
+    keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area_px) + 1
+    peaks = ndimage.maximum(response, labels, keep) if len(keep) else []
+    return centroids[keep].reshape(-1, 2), np.asarray(peaks, dtype=np.float64).reshape(-1)
 
 
 def checked_image(image, camera: Camera) -> np.ndarray:

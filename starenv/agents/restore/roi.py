@@ -13,6 +13,7 @@ from starenv.agents.restore.algorithms import (
     convolve_batch,
     richardson_lucy_batch,
     robust_background,
+    streak_candidates,
 )
 from starenv.agents.restore.kernels import frame_kernel, path_kernel, sigma_for, spot_sigma, star_paths, window
 
@@ -22,10 +23,9 @@ PATCH_STEP_PX = 8  # patch sizes are rounded up to multiples of this, one Richar
 class RoiDeblurrer:
     """Richardson-Lucy on patches around candidate streaks, each with its own space-variant kernel.
 
-    Candidates: the background-subtracted frame is correlated with the frame centre's streak (the kernel of a star
-    at the frame centre with the sensor's ``psf_sigma_px``: the matched filter of a trail); 8-connected components
-    of at least ``min_area_px`` pixels where it exceeds ``threshold_sigma`` times its noise are candidates, at their
-    centroids (the trail's centre, as the filtered response of a trail is symmetric about it).  A candidate's kernel
+    Candidates: :func:`~starenv.agents.restore.algorithms.streak_candidates` with the frame centre's streak (the
+    kernel of a star at the frame centre with the sensor's ``psf_sigma_px``), ``threshold_sigma`` and
+    ``min_area_px``, at their centroids.  A candidate's kernel
     is the path of a star at that centre (:func:`starenv.agents.restore.kernels.star_paths`); its box is the
     kernel's extent about the centre and its patch that box grown by ``margin_px`` on each side, rounded up to a
     multiple of ``PATCH_STEP_PX`` per axis.  Patches of one size are restored together by
@@ -44,24 +44,13 @@ class RoiDeblurrer:
         self.max_patch_px = checks.integer("max_patch_px", max_patch_px, 8, 4096)
         self.last_info: dict = {}
 
-    def candidates(self, data: np.ndarray, level: float, noise: float, streak: np.ndarray) -> np.ndarray:
-        """Centres (k, 2) px of the candidate streaks: components of the matched-filter response to ``streak``."""
-        template = streak.astype(np.float32)
-        response = cv2.filter2D((data - level).astype(np.float32), cv2.CV_32F, template,
-                                borderType=cv2.BORDER_REFLECT)  # correlation with the expected trail
-        response_noise = noise * float(np.sqrt(np.sum(streak**2)))  # white pixel noise through the filter
-        above = (response > self.threshold_sigma * response_noise).astype(np.uint8)
-        _, _, stats, centroids = cv2.connectedComponentsWithStats(above, connectivity=8, ltype=cv2.CV_32S)
-        keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= self.min_area_px) + 1
-        return centroids[keep].reshape(-1, 2)
-
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         cam = step.cameras[head]
         data = checked_image(image, cam)
         sigma = sigma_for(self.psf_sigma_px, cam)
         level, noise = robust_background(data)
         streak, _ = frame_kernel(step, head, sigma)
-        centres = self.candidates(data, level, noise, streak)
+        centres, _ = streak_candidates(data, level, noise, streak, self.threshold_sigma, self.min_area_px)
         out = data.copy()
         self.last_info = {"iterations": self.iterations, "candidates": int(len(centres)), "skipped": 0,
                           "batches": 0, "patch_px": 0}

@@ -364,7 +364,7 @@ def test_aggregate_statistics_match_hand_computed_values(tmp_path):
     assert len(rows) == 1
     row = rows[0]
     assert (row["scenario"], row["sweep_key"], row["sweep_value"], row["pipeline"]) == (
-        "paper_000", "motion.rate_dps", 4, "scenario")
+        "paper_000", "motion.rate_dps about [1, 0, 0]", 4, "scenario")
     assert row["runs"] == 2 and row["steps"] == 6
     assert row["attitude_error_arcsec_median"] == 3.0
     assert row["attitude_error_arcsec_p95"] == pytest.approx(4.8)  # 0.95 * 4 = 3.8 -> 4 + 0.8 * (5 - 4)
@@ -383,9 +383,11 @@ def test_report_links_tables_and_plots_that_exist(tmp_path):
     links = [part.split(")")[0] for part in text.split("](")[1:]]
     assert "summary.md" in links and "summary.csv" in links
     pngs = [link for link in links if link.endswith(".png")]
-    # error and ID rate vs rate for the one swept (scenario, key), latency per role for the one scenario
+    # error, ID rate and availability vs rate for the one swept (scenario, key, axis), latency per role
     assert sorted(Path(p).name for p in pngs) == [
-        "paper_000-latency.png", "paper_000-motion_rate_dps-error.png", "paper_000-motion_rate_dps-id-rate.png"]
+        "paper_000-latency.png", "paper_000-motion_rate_dps_about_1_0_0-availability.png",
+        "paper_000-motion_rate_dps_about_1_0_0-error.png", "paper_000-motion_rate_dps_about_1_0_0-id-rate.png"]
+    assert "## Working rate" in text and "### paper_000: motion.rate_dps about [1, 0, 0] (3 steps per rate)" in text
     for link in links:
         assert (tmp_path / link).exists(), link
     for p in pngs:

@@ -9,7 +9,7 @@ import pytest
 import starenv  # noqa: F401  (registers the environments)
 from starenv.agents.base import step_input
 from starenv.agents.detect import CentroidDetector
-from starenv.agents.restore.trail_fit import TrailFitDeblurrer, fit_trail, trail_model
+from starenv.agents.restore.trail_fit import TrailFitDeblurrer, chords, fit_trail, trail_model
 from starenv.scoring import match
 from starenv.sim.render import StarTruth, still_image
 
@@ -27,36 +27,60 @@ def line(length_px: float, angle_rad: float, m: int = 41) -> np.ndarray:
     return length_px * t[:, None] * np.array([math.cos(angle_rad), math.sin(angle_rad)])
 
 
-def test_model_is_the_renderers_trail_and_its_derivative_is_the_finite_difference():
+def grid(width, height):
+    yy, xx = np.mgrid[0:height, 0:width]
+    return xx.ravel().astype(float), yy.ravel().astype(float)
+
+
+def test_chords_follow_the_path_and_a_straight_trail_is_one_chord():
+    straight = line(12.0, 0.4)
+    knots = chords(straight)
+    assert len(knots) == 2
+    np.testing.assert_allclose(knots[1] - knots[0], 12.0 * np.array([math.cos(0.4), math.sin(0.4)]), atol=1e-12)
+    t = (np.arange(201) + 0.5) / 201  # an arc of radius 200 px through 0.3 rad (60 px long)
+    arc = 200.0 * np.stack([np.cos(0.3 * (t - 0.5)), np.sin(0.3 * (t - 0.5))], axis=1) - [200.0, 0.0]
+    knots = chords(arc)
+    assert 2 < len(knots) <= 33
+    # every sample lies within the tolerance of the chords: the sagitta of a chord of angle a is R (1 - cos(a / 2))
+    a = 0.3 / (len(knots) - 1)
+    assert 200.0 * (1 - math.cos(a / 2)) <= 0.05
+
+
+def test_model_matches_the_renderers_trail_and_its_derivative_is_the_finite_difference():
     offsets = line(12.0, 0.4)
     centre = np.array([20.3, 17.8])
-    xs, ys = np.arange(40.0), np.arange(36.0)
-    t, tx, ty = trail_model(xs, ys, centre, offsets, SIGMA)
-    np.testing.assert_allclose(t, rendered_trail((36, 40), centre, offsets, 1.0), atol=1e-7)
-    assert t.sum() == pytest.approx(1.0, abs=1e-9)  # the whole trail is inside the box
+    x, y = grid(40, 36)
+    knots = chords(offsets)
+    t, tx, ty = trail_model(x, y, centre, knots, SIGMA)
+    rendered = rendered_trail((36, 40), centre, offsets, 1.0).ravel()
+    # the model's Gaussian with the pixel's variance added against the renderer's pixel-integrated one
+    assert np.abs(t - rendered).max() < 0.01 * rendered.max()
+    assert t.sum() == pytest.approx(1.0, abs=1e-3)
     h = 1e-5
     for k, d in enumerate((tx, ty)):
         step = np.zeros(2)
         step[k] = h
-        fd = (trail_model(xs, ys, centre + step, offsets, SIGMA)[0]
-              - trail_model(xs, ys, centre - step, offsets, SIGMA)[0]) / (2 * h)
+        fd = (trail_model(x, y, centre + step, knots, SIGMA)[0] - trail_model(x, y, centre - step, knots, SIGMA)[0]) / (
+            2 * h)
         np.testing.assert_allclose(d, fd, atol=1e-8)
 
 
-def test_fit_is_unbiased_and_its_covariance_is_the_scatter():
-    # 200 seeded frames of one 15 px trail (flux 3000 DN, white noise 5 DN, background 100 DN): the fitted mid-exposure
-    # position scatters as the covariance the fit reports (J^T J)^-1 sigma^2, which for white Gaussian noise is the
-    # Cramer-Rao bound: chi-square of the 2-D errors averages 2 (95 % band of the mean of 200: 2 +- 0.28).
+def test_fit_reaches_the_cramer_rao_bound():
+    # 200 seeded frames of one 15 px trail (flux 3000 DN, white noise 5 DN, background 100 DN) drawn by the renderer:
+    # the fitted mid-exposure position scatters as the covariance the fit reports, (J^T J)^-1 sigma^2, which for
+    # white Gaussian noise is the Cramer-Rao bound: chi-square of the 2-D errors averages 2 (95 % band of the mean
+    # of 200 draws: 2 +- 0.28), and the mean error is within 3 standard errors of zero (the model's 1 % shape
+    # mismatch against the renderer biases it by less).
     offsets = line(15.0, -0.7)
     truth = np.array([24.4, 23.1])
-    clean = 100.0 + rendered_trail((48, 48), truth, offsets, 3000.0)
+    clean = 100.0 + rendered_trail((48, 48), truth, offsets, 3000.0).ravel()
     rng = np.random.default_rng(7)
-    xs = ys = np.arange(48.0)
-    usable = np.ones((48, 48), dtype=bool)
+    x, y = grid(48, 48)
+    knots = chords(offsets)
     chi2, errors = [], []
     for _ in range(200):
         frame = clean + rng.normal(0.0, 5.0, clean.shape)
-        c, flux, level, cov, ok = fit_trail(frame, xs, ys, truth + [0.8, -0.6], offsets, SIGMA, 5.0, usable)
+        c, flux, level, cov, ok = fit_trail(frame, x, y, truth + [0.8, -0.6], knots, SIGMA, 5.0)
         assert ok
         e = c - truth
         chi2.append(e @ np.linalg.solve(cov[:2, :2], e))
@@ -69,13 +93,13 @@ def test_a_hot_pixel_on_the_trail_is_left_out():
     offsets = line(15.0, 0.0)
     truth = np.array([24.0, 20.3])
     frame = 100.0 + rendered_trail((40, 48), truth, offsets, 3000.0) + np.random.default_rng(1).normal(0, 5, (40, 48))
-    xs, ys = np.arange(48.0), np.arange(40.0)
-    usable = np.ones(frame.shape, dtype=bool)
-    clean_fit = fit_trail(frame, xs, ys, truth, offsets, SIGMA, 5.0, usable)[0]
+    x, y = grid(48, 40)
+    knots = chords(offsets)
+    clean_fit = fit_trail(frame.ravel(), x, y, truth, knots, SIGMA, 5.0)[0]
     frame[20, 29] += 2000.0  # a hot pixel 5 px along the trail from its centre
-    c = fit_trail(frame, xs, ys, truth, offsets, SIGMA, 5.0, usable)[0]
+    c = fit_trail(frame.ravel(), x, y, truth, knots, SIGMA, 5.0)[0]
     np.testing.assert_allclose(c, clean_fit, atol=0.01)
-    kept = fit_trail(frame, xs, ys, truth, offsets, SIGMA, 5.0, usable, outlier_sigma=1e6)[0]
+    kept = fit_trail(frame.ravel(), x, y, truth, knots, SIGMA, 5.0, outlier_sigma=1e6)[0]
     assert np.hypot(*(kept - clean_fit)) > 0.1  # without the rejection it moves 0.2 px (measured)
 
 
@@ -99,17 +123,24 @@ def test_a_still_frame_comes_back_unchanged():
 
 def test_fast_frames_give_more_stars_and_smaller_errors_than_the_blurred_ones():
     # paper_000 at 60 deg/s about X (26 px trails), seed 0, frames 1-3, the scenario's detector, 3 px gate against
-    # xy_mid.  Measured: blurred 40 stars matched, mean error 0.62 px; trail fit 66 stars, mean 0.51 px.
+    # xy_mid.  Measured: blurred 40 stars matched, trail fit 77; on the 39 stars matched in both, mean error 0.63 px
+    # blurred, 0.35 px fitted (medians 0.14 and 0.12 px: the gain is in the tail, trails cut by neighbours and edges).
     detector = CentroidDetector()
-    counts, errors = {"blurred": 0, "fitted": 0}, {"blurred": [], "fitted": []}
+    counts = {"blurred": 0, "fitted": 0}
+    common = {"blurred": [], "fitted": []}
     for base, step, truth in frames(60.0, [1, 0, 0]):
         image = step.images[0]
+        found = {}
         for name, img in (("blurred", image), ("fitted", TrailFitDeblurrer().deblur(image, 0, step))):
-            _, _, d = match(detector.detect(img, base.cameras[0]).xy, truth.xy_mid)
+            _, j, d = match(detector.detect(img, base.cameras[0]).xy, truth.xy_mid)
             counts[name] += len(d)
-            errors[name] += list(d)
-    assert counts["fitted"] >= 1.5 * counts["blurred"]
-    assert np.mean(errors["fitted"]) < 0.9 * np.mean(errors["blurred"])
+            found[name] = dict(zip(j.tolist(), d, strict=True))
+        both = sorted(set(found["blurred"]) & set(found["fitted"]))
+        for name in common:
+            common[name] += [found[name][k] for k in both]
+    assert counts["fitted"] >= 1.6 * counts["blurred"]
+    assert len(common["fitted"]) >= 0.9 * counts["blurred"]
+    assert np.mean(common["fitted"]) < 0.7 * np.mean(common["blurred"])
 
 
 def test_bad_options_name_the_field():

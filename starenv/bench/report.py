@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -248,12 +249,13 @@ def working_rates(rows: list[dict]) -> str:
         return ""
     return ("## Working rate\n\nAvailability (share of steps within the scenario's threshold) at each swept rate "
             f"(deg/s); a pipeline's working rate is the largest swept rate that, with every smaller one, has "
-            f"availability >= {WORKING_AVAILABILITY:g}; \"x blurred\": that over the best working rate of the pipelines that do not "
-            "restore.  ID rate against rate: the plots.\n\n" + "\n\n".join(out) + "\n")
+            f"availability >= {WORKING_AVAILABILITY:g}; \"x blurred\": that over the best working rate of the "
+            "pipelines that do not restore.  ID rate against rate: the plots.\n\n" + "\n\n".join(out) + "\n")
 
 
 def _slug(*parts: str) -> str:
-    return "-".join("".join(c if c.isalnum() or c in "_-" else "_" for c in p) for p in parts if p)
+    """A file-name part per part (runs of other characters become one ``_``), joined by ``-``."""
+    return "-".join(re.sub(r"[^A-Za-z0-9_-]+", "_", p).strip("_") for p in parts if p)
 
 
 def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[str, Path]]:

@@ -217,20 +217,26 @@ def robust_background(image: np.ndarray) -> tuple[float, float]:
 
 
 def streak_candidates(data: np.ndarray, level: float, noise: float, streak: np.ndarray, threshold_sigma: float,
-                      min_area_px: int) -> tuple[np.ndarray, np.ndarray]:
+                      min_area_px: int, at: str = "centroid") -> tuple[np.ndarray, np.ndarray]:
     """Candidate streaks of a frame (DN): the frame less its background ``level`` correlated with the expected trail
     ``streak`` (the matched filter of a trail); 8-connected components of at least ``min_area_px`` pixels where the
     response exceeds ``threshold_sigma`` times its noise (white pixel ``noise`` through the filter).  Returns their
-    centroids (k, 2) px (x, y: the trail's centre, as the response of a trail is symmetric about it) and peak
-    responses (k,) in noise sigmas."""
+    positions (k, 2) px (x, y), ``at`` their ``"centroid"`` or at their response's ``"peak"`` (either is the trail's
+    centre, as the response of a trail is symmetric about it; the peak is not moved by a trail cut by the frame's
+    edge or the threshold), and their peak responses (k,) in noise sigmas."""
     template = streak.astype(np.float32)
     response = cv2.filter2D((data - level).astype(np.float32), cv2.CV_32F, template, borderType=cv2.BORDER_REFLECT)
     response /= noise * float(np.sqrt(np.sum(streak**2)))
     above = (response > threshold_sigma).astype(np.uint8)
     n, labels, stats, centroids = cv2.connectedComponentsWithStats(above, connectivity=8, ltype=cv2.CV_32S)
     keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area_px) + 1
-    peaks = ndimage.maximum(response, labels, keep) if len(keep) else []
-    return centroids[keep].reshape(-1, 2), np.asarray(peaks, dtype=np.float64).reshape(-1)
+    if len(keep) == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    peaks = np.asarray(ndimage.maximum(response, labels, keep), dtype=np.float64)
+    if at == "peak":
+        rows_cols = np.asarray(ndimage.maximum_position(response, labels, keep), dtype=np.float64)
+        return rows_cols[:, ::-1].copy(), peaks
+    return centroids[keep].reshape(-1, 2), peaks
 
 
 def checked_image(image, camera: Camera) -> np.ndarray:

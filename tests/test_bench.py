@@ -137,7 +137,24 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
     deblurrers = {r.pipeline.build(scenario_mod.load(r.scenario)).describe()["deblurrer"] for r in bench.runs}
     assert {"starenv.agents.restore.iteration.deblurrer:IterationNetDeblurrer",
             "starenv.agents.restore.curvature:CurvatureRLDeblurrer", "starenv.agents.restore.frame:WienerDeblurrer",
-            "starenv.agents.restore.roi:RoiDeblurrer"} < deblurrers
+            "starenv.agents.restore.roi:RoiDeblurrer",
+            "starenv.agents.restore.trail_fit:TrailFitDeblurrer"} < deblurrers
+
+
+def test_working_rate_bench_sweeps_each_axis_in_5_dps_steps_with_every_restorer():
+    bench = load_bench("working_rate")
+    groups = {}
+    for r in bench.runs:
+        groups.setdefault((r.scenario, r.sweep_axis), set()).add((r.pipeline.name, r.sweep_value, r.seed))
+    assert set(groups) == {("paper_000", (1.0, 0.0, 0.0)), ("paper_000", (0.0, 1.0, 0.0)),
+                           ("paper_000", (0.0, 0.0, 1.0)), ("paper_002", (1.0, 1.0, 1.0))}
+    deblurrers = {r.pipeline.build(scenario_mod.load(r.scenario)).describe()["deblurrer"] for r in bench.runs}
+    assert len(deblurrers) == 6  # none (blurred) and the five restorers
+    for cases in groups.values():
+        rates = sorted({v for _, v, _ in cases})
+        assert rates[0] == 0 and max(np.diff(rates)) <= 5
+        assert {s for _, _, s in cases} == {0, 1}
+    assert {r.steps for r in bench.runs} == {20}
 
 
 USES_X = SMALL.replace('"lost_in_space"]', '"x"]')

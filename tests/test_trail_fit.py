@@ -148,3 +148,27 @@ def test_bad_options_name_the_field():
         TrailFitDeblurrer(min_snr=-1.0)
     with pytest.raises(ValueError, match="threshold_sigma"):
         TrailFitDeblurrer(threshold_sigma=0.0)
+
+
+def test_streak_candidates_peaks_are_scipys_maxima_of_the_matched_filter():
+    import cv2
+    from scipy import ndimage
+
+    from starenv.agents.restore.algorithms import streak_candidates
+
+    rng = np.random.default_rng(3)
+    frame = 100.0 + rng.normal(0.0, 5.0, (120, 160))
+    streak = rendered_trail((15, 15), (7.0, 7.0), line(8.0, 0.3), 1.0)
+    for xy, flux in (((40.2, 30.7), 900.0), ((100.6, 80.1), 400.0), ((130.0, 20.0), 2000.0)):
+        frame += rendered_trail(frame.shape, xy, line(8.0, 0.3), flux)
+    centres, peaks = streak_candidates(frame, 100.0, 5.0, streak, 5.0, 4, at="peak")
+    response = cv2.filter2D((frame - 100.0).astype(np.float32), cv2.CV_32F, streak.astype(np.float32),
+                            borderType=cv2.BORDER_REFLECT) / (5.0 * np.sqrt(np.sum(streak**2)))
+    _, labels, stats, _ = cv2.connectedComponentsWithStats((response > 5.0).astype(np.uint8), connectivity=8,
+                                                           ltype=cv2.CV_32S)
+    keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= 4) + 1
+    assert len(keep) == 3
+    np.testing.assert_allclose(peaks, ndimage.maximum(response, labels, keep))
+    np.testing.assert_array_equal(centres, np.array(ndimage.maximum_position(response, labels, keep))[:, ::-1])
+    # each peak is at its trail's centre (to a pixel: the response of a symmetric trail is symmetric about it)
+    assert np.abs(np.sort(centres[:, 0]) - [40.2, 100.6, 130.0]).max() <= 1.0

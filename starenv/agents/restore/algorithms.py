@@ -21,7 +21,7 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
-from scipy import fft, ndimage
+from scipy import fft
 from scipy.signal import fftconvolve
 
 from starenv import checks
@@ -232,10 +232,14 @@ def streak_candidates(data: np.ndarray, level: float, noise: float, streak: np.n
     keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area_px) + 1
     if len(keep) == 0:
         return np.zeros((0, 2)), np.zeros(0)
-    peaks = np.asarray(ndimage.maximum(response, labels, keep), dtype=np.float64)
+    flat = np.flatnonzero(above)  # the pixels above the threshold, sorted by (component, response)
+    lab, val = labels.ravel()[flat], response.ravel()[flat]
+    order = np.lexsort((val, lab))
+    last = np.flatnonzero(np.diff(lab[order], append=n))  # the strongest pixel of each component 1 .. n - 1
+    top = flat[order[last]][keep - 1]
+    peaks = response.ravel()[top].astype(np.float64)
     if at == "peak":
-        rows_cols = np.asarray(ndimage.maximum_position(response, labels, keep), dtype=np.float64)
-        return rows_cols[:, ::-1].copy(), peaks
+        return np.stack([top % data.shape[1], top // data.shape[1]], axis=1).astype(np.float64), peaks
     return centroids[keep].reshape(-1, 2), peaks
 
 

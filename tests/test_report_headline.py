@@ -28,20 +28,23 @@ def test_headline_picks_by_availability_then_error_then_latency():
     assert table["b"].endswith("exposure_s: x none, y none |")
 
 
-def test_working_rate_table_keeps_axes_apart_and_divides_by_the_best_blurred_pipeline():
+def test_working_rate_table_keeps_axes_apart_and_divides_by_the_same_pipeline_unrestored():
     about = "motion.rate_dps about [1, 0, 0]"
     rows = [case("s", p, a, 1.0, 1.0, about, v) for p, v, a in (
         ("blur", 0, 1.0), ("blur", 5, 0.95), ("blur", 10, 0.5),
-        ("blur2", 0, 1.0), ("blur2", 5, 0.5), ("blur2", 10, 1.0),
+        ("filter", 0, 1.0), ("filter", 5, 1.0), ("filter", 10, 1.0),
         ("fit", 0, 1.0), ("fit", 5, 0.9), ("fit", 10, 0.92))]
     rows += [case("s", "other", 0.2, 1.0, 1.0, "motion.rate_dps about [0, 1, 0]", 0)]
     for r in rows:
+        r["pipeline_agents"] = {"blur": "A", "filter": "F", "fit": "A+D", "other": "A"}[r["pipeline"]]
+        r["pipeline_unrestored"] = {"blur": "A", "filter": "F", "fit": "A", "other": "A"}[r["pipeline"]]
         if r["pipeline"] == "fit":
             r["restoration_stars_after_median"] = 10.0
     text = working_rates(rows)
     cells = {line.split(" | ")[0].strip("| "): line.strip("| ").split(" | ")
              for line in text.splitlines() if line.startswith("| ") and "pipeline" not in line}
-    assert cells["fit"][:4] == ["fit", "yes", "10", "2.00"]  # 10 over blur's 5 (blur2 fails at 5: its limit is 0)
-    assert cells["blur"][:4] == ["blur", "no", "5", "1.00"] and cells["blur2"][2] == "0"
+    # fit works to 10 against its unrestored twin's 5 (not against the better "filter", a different pipeline)
+    assert cells["fit"][:4] == ["fit", "yes", "10", "2.00 (blur)"]
+    assert cells["blur"][:4] == ["blur", "no", "5", "-"] and cells["filter"][2] == "10"
     assert text.count("### s: ") == 2  # the Y-axis sweep is its own table
     assert working_rates([case("s", "p", 1.0, 1.0, 1.0, "exposure_s", 0.01)]) == ""

@@ -65,7 +65,9 @@ def aggregate(run_files: list[Path]) -> list[dict]:
     for (scenario, sweep_key, _, pipeline), case in cases.items():
         sweep = case["ident"]["sweep"] or {}
         row = {"scenario": scenario, "sweep_key": sweep_key or "", "sweep_value": sweep.get("value", ""),
-               "pipeline": pipeline, "runs": case["runs"], "steps": len(case["records"])}
+               "pipeline": pipeline, "runs": case["runs"], "steps": len(case["records"]),
+               "pipeline_agents": _choice(case["ident"]["pipeline"]),
+               "pipeline_unrestored": _choice(case["ident"]["pipeline"], without="deblurrer")}
         records = case["records"]
         metrics = sorted({k for r in records for k in r if k not in SKIP})
         for m in metrics:
@@ -77,6 +79,13 @@ def aggregate(run_files: list[Path]) -> list[dict]:
                 row[f"{m}_p95"] = float(np.percentile(values, 95)) if len(values) else None
         rows.append(row)
     return rows
+
+
+def _choice(pipeline: dict, without: str | None = None) -> str:
+    """A pipeline's agents, options and catalogue limit as canonical JSON, less the role ``without``."""
+    agents = {k: v for k, v in pipeline.get("agents", {}).items() if k != without}
+    options = {k: v for k, v in pipeline.get("options", {}).items() if k != without}
+    return json.dumps([agents, options, pipeline.get("catalog_mag_limit")], sort_keys=True)
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
@@ -220,8 +229,8 @@ def _restores(rows: list[dict]) -> bool:
 
 def working_rates(rows: list[dict]) -> str:
     """Per rate sweep (a ``*rate_dps`` key along an axis): each pipeline's availability at every swept rate, its
-    working rate (:func:`working_limit`) and that rate over the best working rate of the pipelines that do not
-    restore (blurred frames); '' when the bench sweeps no rate."""
+    working rate (:func:`working_limit`) and, for a restoring pipeline, that rate over the working rate of the same
+    pipeline without its deblurrer when the bench ran it ("x unrestored"); '' when the bench sweeps no rate."""
     out = []
     groups = dict.fromkeys((r["scenario"], r["sweep_key"]) for r in rows
                            if r["sweep_key"].split(" about ", 1)[0].endswith("rate_dps"))
@@ -231,16 +240,17 @@ def working_rates(rows: list[dict]) -> str:
         values = sorted({r["sweep_value"] for r in cases})
         per = {p: [r for r in cases if r["pipeline"] == p] for p in dict.fromkeys(r["pipeline"] for r in cases)}
         limits = {p: working_limit(c) for p, c in per.items()}
-        blurred = [limits[p] for p, c in per.items() if not _restores(c) and limits[p] is not None]
-        base = max(blurred, default=None)
+        by_agents = {c[0].get("pipeline_agents"): p for p, c in per.items() if not _restores(c)}
         steps = sorted({r["steps"] for r in cases})
-        head = ["pipeline", "restores", "working rate", "x blurred", *(_fmt(v) for v in values)]
+        head = ["pipeline", "restores", "working rate", "x unrestored", *(_fmt(v) for v in values)]
         lines = [f"### {scenario}: {key} ({', '.join(map(str, steps))} steps per rate)", "",
                  "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for p in sorted(per, key=lambda p: (-(limits[p] if limits[p] is not None else -1.0), p)):
             at = {r["sweep_value"]: r.get("within_threshold") for r in per[p]}
             lim = limits[p]
-            ratio = "-" if lim is None or not base else f"{lim / base:.2f}"
+            twin = by_agents.get(per[p][0].get("pipeline_unrestored")) if _restores(per[p]) else None
+            base = limits.get(twin) if twin else None
+            ratio = f"{lim / base:.2f} ({twin})" if lim is not None and base else "-"
             cells = [p, "yes" if _restores(per[p]) else "no", "none" if lim is None else _fmt(lim), ratio,
                      *(_fmt(at.get(v)) for v in values)]
             lines.append("| " + " | ".join(cells) + " |")
@@ -249,8 +259,9 @@ def working_rates(rows: list[dict]) -> str:
         return ""
     return ("## Working rate\n\nAvailability (share of steps within the scenario's threshold) at each swept rate "
             f"(deg/s); a pipeline's working rate is the largest swept rate that, with every smaller one, has "
-            f"availability >= {WORKING_AVAILABILITY:g}; \"x blurred\": that over the best working rate of the "
-            "pipelines that do not restore.  ID rate against rate: the plots.\n\n" + "\n\n".join(out) + "\n")
+            f"availability >= {WORKING_AVAILABILITY:g}; \"x unrestored\": a restoring pipeline's working rate over "
+            "that of the same pipeline without its deblurrer (named).  ID rate against rate: the plots.\n\n"
+            + "\n\n".join(out) + "\n")
 
 
 def _slug(*parts: str) -> str:

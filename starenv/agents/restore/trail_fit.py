@@ -21,12 +21,13 @@ thresholded pixels loses the faint ends first.
 Robustness.  Pixels at the ADC's full-scale code are left out of the fit (a saturated trail's core carries no
 flux information); after the first fit, pixels more than ``outlier_sigma`` noise sigmas above the model (a hot
 pixel, a cosmic ray, a neighbour's trail) are left out and the fit is repeated.  A fit is kept when it converges
-inside its box, its flux is positive with ``F / sigma_F >= min_snr`` and its mid-exposure position lies on the
-frame; the other candidates are left as observed.  Candidates are fitted brightest first, each on the frame less
-the trails already kept, so overlapping trails do not pull each other.
+within ``SHIFT_PX`` of its start, its flux is positive with ``F / sigma_F >= min_snr`` and its mid-exposure position
+lies on the frame; the other candidates are left as observed.  The candidates are fitted side by side (one batch of
+Gauss-Newton steps for all); of two fits that land on one star (a trail found as two candidates) the brighter is
+kept.
 
 Output.  The observed frame with each kept trail replaced by its still star: ``g - F T(c) + F S(c)``, ``S`` the
-still spot (the same ``g`` at ``r_j = 0``), so the residual noise stays as observed and a detector tuned to the
+still spot (the same model with no motion), so the residual noise stays as observed and a detector tuned to the
 sensor finds a point star at ``c``.  Candidates: the matched-filter streak finder of
 :func:`starenv.agents.restore.algorithms.streak_candidates`.
 """
@@ -74,94 +75,152 @@ def chords(offsets: np.ndarray) -> np.ndarray:
 def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: float):
     """Unit-flux trail at the pixels (x, y) (n,) px of a star at mid-exposure ``centre`` (x, y) px moving at constant
     speed along each chord of ``centre + knots`` (:func:`chords`), equal time on each, and its derivatives
-    ``dT/dc_x``, ``dT/dc_y`` (n,).
+    ``dT/dc_x``, ``dT/dc_y`` (n,).  Batched: x, y (C, n), centre (C, 2), knots (C, K + 1, 2) give (C, n) each.
 
     Each chord of length L is a uniform line convolved with a Gaussian: along it ``(Phi(u / s) - Phi((u - L) / s))
     / L``, across it ``phi(v / s) / s``, with ``s^2 = sigma^2 + 1/12`` (the pixel's box added to the spot: the
-    renderer integrates the spot over each pixel; this is its second-moment match, within 1 % of the peak)."""
+    renderer integrates the spot over each pixel; this is its second-moment match, within 1 % of the peak); a chord
+    of length 0 is a round Gaussian."""
+    single = np.ndim(x) == 1
+    x, y = np.atleast_2d(x), np.atleast_2d(y)
+    centre = np.asarray(centre, dtype=np.float64).reshape(-1, 2)
+    knots = np.asarray(knots, dtype=np.float64).reshape(len(centre), -1, 2)
     s = math.sqrt(sigma**2 + 1.0 / 12.0)
-    k = len(knots) - 1
-    total = np.zeros(len(x))
-    gx = np.zeros(len(x))
-    gy = np.zeros(len(x))
-    for a, b in zip(knots[:-1], knots[1:], strict=True):
-        ax, ay = centre[0] + a[0], centre[1] + a[1]
-        d = b - a
-        length = math.hypot(d[0], d[1])
-        dx, dy = x - ax, y - ay
-        if length < 1e-6:  # a still star: a round Gaussian
-            g = np.exp(-0.5 * (dx**2 + dy**2) / s**2) / (2.0 * math.pi * s**2)
-            total += g
-            gx += g * dx / s**2
-            gy += g * dy / s**2
-            continue
-        e = d / length
-        u = dx * e[0] + dy * e[1]
-        v = -dx * e[1] + dy * e[0]
-        cross = np.exp(-0.5 * (v / s) ** 2) / (math.sqrt(2.0 * math.pi) * s)
-        along = 0.5 * (erf(u / (math.sqrt(2.0) * s)) - erf((u - length) / (math.sqrt(2.0) * s))) / length
-        d_along = (np.exp(-0.5 * (u / s) ** 2) - np.exp(-0.5 * ((u - length) / s) ** 2)) / (
-            math.sqrt(2.0 * math.pi) * s * length)
+    norm = math.sqrt(2.0 * math.pi) * s
+    n_chords = knots.shape[1] - 1
+    total, gx, gy = np.zeros(x.shape), np.zeros(x.shape), np.zeros(x.shape)
+    for k in range(n_chords):
+        d = knots[:, k + 1] - knots[:, k]
+        length = np.hypot(d[:, 0], d[:, 1])
+        still = length < 1e-6
+        safe = np.where(still, 1.0, length)
+        e = np.where(still[:, None], [1.0, 0.0], d / safe[:, None])
+        dx = x - (centre[:, 0] + knots[:, k, 0])[:, None]
+        dy = y - (centre[:, 1] + knots[:, k, 1])[:, None]
+        ex, ey = e[:, 0, None], e[:, 1, None]
+        u = dx * ex + dy * ey
+        v = -dx * ey + dy * ex
+        cross = np.exp(-0.5 * (v / s) ** 2) / norm
+        head = np.exp(-0.5 * (u / s) ** 2)
+        if still.all():
+            along, d_along = head / norm, -u / s**2 * head / norm
+        else:
+            ln = length[:, None]
+            tail = np.exp(-0.5 * ((u - ln) / s) ** 2)
+            along = 0.5 * (erf(u / (math.sqrt(2.0) * s)) - erf((u - ln) / (math.sqrt(2.0) * s))) / safe[:, None]
+            d_along = (head - tail) / (norm * safe[:, None])
+            if still.any():
+                along = np.where(still[:, None], head / norm, along)
+                d_along = np.where(still[:, None], -u / s**2 * head / norm, d_along)
         g = along * cross
         du = d_along * cross  # dT/du; dT/dv = -v / s^2 T; the centre moves the pixel by -1: dT/dc = -grad T
         dv = -v / s**2 * g
         total += g
-        gx -= du * e[0] - dv * e[1]
-        gy -= du * e[1] + dv * e[0]
-    return total / k, gx / k, gy / k
+        gx -= du * ex - dv * ey
+        gy -= du * ey + dv * ex
+    out = total / n_chords, gx / n_chords, gy / n_chords
+    return tuple(a[0] for a in out) if single else out
+
+
+def _normal(t, tx, ty, flux, w):
+    """Gauss-Newton's Jacobian (C, n, 4) of the model ``b + F T`` in (c_x, c_y, F, b), zero off the pixels ``w``."""
+    return np.stack([flux[:, None] * tx, flux[:, None] * ty, t, np.ones(t.shape)], axis=-1) * w[..., None]
+
+
+def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarray, starts: np.ndarray,
+               knots: np.ndarray, sigma: float, noise: float, iterations: int = 10, outlier_sigma: float = 5.0,
+               min_snr: float = 0.0):
+    """Least-squares fits of :func:`trail_model` plus a constant background, one per candidate, side by side: pixel
+    ``values`` (C, n) DN at (x, y) (C, n) px, of which the ``valid`` ones (C, n) count, starting from ``starts``
+    (C, 2) px, each along its ``knots`` (C, K + 1, 2).
+
+    Returns ``centre (C, 2) px, flux (C,) DN, background (C,) DN, covariance (C, 4, 4) of (c_x, c_y, F, b),
+    converged (C,)``; the covariance is ``noise**2 (J^T J)^-1`` at the solution.  Positive outliers (``outlier_sigma``
+    noise sigmas above the first fit) are dropped and those fits repeated once.  A start whose linear flux estimate
+    is below half of ``min_snr`` of its own sigma is not iterated (not converged): noise candidates cost no time."""
+    c = np.array(starts, dtype=np.float64).reshape(-1, 2)
+    n = len(c)
+    use = np.asarray(valid, dtype=bool).copy()
+    flux, level = np.zeros(n), np.zeros(n)
+    cov = np.full((n, 4, 4), np.nan)
+    converged = np.zeros(n, dtype=bool)
+    live = use.sum(axis=1) >= 8
+    todo = live.copy()
+    for rnd in range(2):
+        w = use.astype(np.float64)
+        t, tx, ty = trail_model(x, y, c, knots, sigma)
+        # linear start for (F, b) at the current position: 2 x 2 normal equations per candidate
+        s1, st, stt = w.sum(1), (w * t).sum(1), (w * t * t).sum(1)
+        sd, std = (w * values).sum(1), (w * t * values).sum(1)
+        det = np.where(todo, stt * s1 - st**2, 1.0)
+        det = np.where(det > 0, det, 1.0)
+        flux = np.where(todo, (s1 * std - st * sd) / det, flux)
+        level = np.where(todo, (stt * sd - st * std) / det, level)
+        if rnd == 0 and min_snr > 0:
+            todo &= flux >= 0.5 * min_snr * noise * np.sqrt(s1 / det)
+            live &= todo
+        r = (values - level[:, None] - flux[:, None] * t) * w
+        done = ~todo
+        for _ in range(iterations):
+            step = ~done
+            if not step.any():
+                break
+            j = _normal(t, tx, ty, flux, w)
+            jt = j.swapaxes(1, 2)
+            jtj = jt @ j
+            jtj[~step] = np.eye(4)
+            delta = np.linalg.solve(jtj + 1e-12 * np.eye(4), jt @ r[..., None])[..., 0]
+            delta[~step] = 0.0
+            rows = np.flatnonzero(step)  # the model is evaluated on the fits still moving only
+            xs, ys, ws, vs, ks = x[rows], y[rows], w[rows], values[rows], knots[rows]
+            d = delta[rows]
+            t_new, tx_new, ty_new = trail_model(xs, ys, c[rows] + d[:, :2], ks, sigma)
+            r_new = (vs - (level[rows] + d[:, 3])[:, None] - (flux[rows] + d[:, 2])[:, None] * t_new) * ws
+            for halving in range(9):  # halve steps that raise a fit's sum of squares (Gauss-Newton overshoots)
+                worse = np.flatnonzero((r_new**2).sum(1) > (r[rows] ** 2).sum(1))
+                if len(worse) == 0:
+                    break
+                if halving == 8:  # no descent along the step: the fit is stuck, it stops (not converged)
+                    done[rows[worse]] = True
+                    d[worse] = 0.0
+                    t_new[worse], tx_new[worse], ty_new[worse] = t[rows[worse]], tx[rows[worse]], ty[rows[worse]]
+                    r_new[worse] = r[rows[worse]]
+                    break
+                d[worse] *= 0.5
+                tw, txw, tyw = trail_model(xs[worse], ys[worse], c[rows[worse]] + d[worse, :2], ks[worse], sigma)
+                t_new[worse], tx_new[worse], ty_new[worse] = tw, txw, tyw
+                r_new[worse] = (vs[worse] - (level[rows[worse]] + d[worse, 3])[:, None]
+                                - (flux[rows[worse]] + d[worse, 2])[:, None] * tw) * ws[worse]
+            delta[rows] = d
+            c += delta[:, :2]
+            flux += delta[:, 2]
+            level += delta[:, 3]
+            t[rows], tx[rows], ty[rows], r[rows] = t_new, tx_new, ty_new, r_new
+            settled = step & ~done & np.all(np.abs(delta[:, :2]) < MAX_STEP_PX, axis=1)
+            converged |= settled
+            done |= settled
+        j = _normal(t, tx, ty, flux, w)
+        cov = np.where(todo[:, None, None], noise**2 * np.linalg.pinv(j.swapaxes(1, 2) @ j), cov)
+        if rnd == 1:
+            break
+        resid = values - level[:, None] - flux[:, None] * trail_model(x, y, c, knots, sigma)[0]
+        outliers = use & (resid > outlier_sigma * noise) & live[:, None]
+        todo = outliers.any(axis=1)
+        if not todo.any():
+            break
+        use &= ~outliers
+        converged &= ~todo
+    return c, flux, level, cov, converged & live
 
 
 def fit_trail(values: np.ndarray, x: np.ndarray, y: np.ndarray, start, knots: np.ndarray, sigma: float,
               noise: float, iterations: int = 10, outlier_sigma: float = 5.0, min_snr: float = 0.0):
-    """Least-squares fit of :func:`trail_model` plus a constant background to pixel ``values`` (DN) at (x, y) (n,).
-
-    Returns ``(centre (2,) px, flux DN, background DN, covariance (4, 4) of (c_x, c_y, F, b), converged)``; the
-    covariance is ``noise**2 (J^T J)^-1`` at the solution.  Positive outliers (``outlier_sigma`` noise sigmas above
-    the first fit) are dropped and the fit repeated once.  A start whose linear flux estimate is below half of
-    ``min_snr`` of its own sigma is not iterated (returned not converged): faint noise candidates cost no time."""
-    c = np.asarray(start, dtype=np.float64).copy()
-    use = np.ones(len(values), dtype=bool)
-    flux, level, cov, converged = 0.0, 0.0, None, False
-    for rnd in range(2):
-        d, xu, yu = values[use], x[use], y[use]
-        t, tx, ty = trail_model(xu, yu, c, knots, sigma)
-        a = np.stack([t, np.ones(len(t))], axis=1)
-        (flux, level), *_ = np.linalg.lstsq(a, d, rcond=None)  # linear start for (F, b) at the current position
-        if rnd == 0 and min_snr > 0:
-            ata = a.T @ a
-            if flux < 0.5 * min_snr * noise * math.sqrt(ata[1, 1] / max(np.linalg.det(ata), 1e-300)):
-                return c, float(flux), float(level), None, False
-        converged = False
-        r = d - level - flux * t
-        for _ in range(iterations):
-            j = np.stack([flux * tx, flux * ty, t, np.ones(len(t))], axis=1)
-            try:
-                delta = np.linalg.solve(j.T @ j, j.T @ r)
-            except np.linalg.LinAlgError:
-                return c, 0.0, float(level), None, False
-            for _ in range(8):  # halve a step that raises the sum of squares (Gauss-Newton overshoots far out)
-                t_new, tx_new, ty_new = trail_model(xu, yu, c + delta[:2], knots, sigma)
-                r_new = d - (level + delta[3]) - (flux + delta[2]) * t_new
-                if r_new @ r_new <= r @ r:
-                    break
-                delta = 0.5 * delta
-            c += delta[:2]
-            flux += delta[2]
-            level += delta[3]
-            t, tx, ty, r = t_new, tx_new, ty_new, r_new
-            if np.all(np.abs(delta[:2]) < MAX_STEP_PX):
-                converged = True
-                break
-        j = np.stack([flux * tx, flux * ty, t, np.ones(len(t))], axis=1)
-        cov = noise**2 * np.linalg.pinv(j.T @ j)
-        if rnd == 1:
-            break
-        resid = values - level - flux * trail_model(x, y, c, knots, sigma)[0]
-        outliers = use & (resid > outlier_sigma * noise)
-        if not outliers.any():
-            break
-        use &= ~outliers
-    return c, float(flux), float(level), cov, converged
+    """:func:`fit_trails` for one candidate on all its pixels (n,): ``(centre (2,), flux, background, covariance
+    (4, 4), converged)``."""
+    c, flux, level, cov, ok = fit_trails(values[None], x[None], y[None], np.ones((1, len(values)), dtype=bool),
+                                         np.reshape(start, (1, 2)), knots[None], sigma, noise, iterations,
+                                         outlier_sigma, min_snr)
+    return c[0], float(flux[0]), float(level[0]), cov[0], bool(ok[0])
 
 
 def near_path(x: np.ndarray, y: np.ndarray, path: np.ndarray, reach: float) -> np.ndarray:
@@ -213,11 +272,10 @@ class TrailFitDeblurrer:
         t0, t1 = window(step)
         paths = star_paths(cam, step.gyro, t0, t1, centres)
         mid = paths.shape[1] // 2
-        work = data.copy()  # the frame less the trails kept so far
         reach = PSF_REACH_SIGMA * sigma + SHIFT_PX
-        sigmas = []
         height, width = data.shape
-        for i in np.argsort(-strength):
+        cands = []  # (index, knots, rows, cols) of each candidate with enough pixels
+        for i in range(len(centres)):
             knots = chords(paths[i] - paths[i, mid])
             lo = np.floor(centres[i] + knots.min(axis=0) - reach).astype(np.int64)
             hi = np.ceil(centres[i] + knots.max(axis=0) + reach).astype(np.int64)
@@ -228,21 +286,39 @@ class TrailFitDeblurrer:
             yy, xx = np.mgrid[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
             keep = near_path(xx.ravel().astype(np.float64), yy.ravel().astype(np.float64), centres[i] + knots, reach)
             keep &= data[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1].ravel() < full_scale
-            rows, cols = yy.ravel()[keep], xx.ravel()[keep]
-            if len(rows) < 8:
-                continue
+            if keep.sum() >= 8:
+                cands.append((i, knots, yy.ravel()[keep], xx.ravel()[keep]))
+        fits = []  # (flux, index, centre, knots, rows, cols, position sigma) of the fits kept
+        for n_knots in sorted({len(k) for _, k, _, _ in cands}):  # one batch per chord count
+            group = [cd for cd in cands if len(cd[1]) == n_knots]
+            size = max(len(cd[2]) for cd in group)
+            rows = np.zeros((len(group), size), dtype=np.int64)
+            cols = np.zeros((len(group), size), dtype=np.int64)
+            valid = np.zeros((len(group), size), dtype=bool)
+            for g, (_, _, r, cl) in enumerate(group):
+                rows[g, : len(r)], cols[g, : len(r)], valid[g, : len(r)] = r, cl, True
+            idx = np.array([cd[0] for cd in group])
+            knots = np.stack([cd[1] for cd in group])
+            c, flux, _, cov, ok = fit_trails(data[rows, cols], cols.astype(np.float64), rows.astype(np.float64),
+                                             valid, centres[idx], knots, sigma, noise,
+                                             outlier_sigma=self.outlier_sigma, min_snr=self.min_snr)
+            sigma_f = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
+            good = ok & (flux > 0) & (flux >= self.min_snr * sigma_f)
+            good &= np.hypot(*(c - centres[idx]).T) <= SHIFT_PX
+            good &= (c[:, 0] >= 0) & (c[:, 0] <= width - 1) & (c[:, 1] >= 0) & (c[:, 1] <= height - 1)
+            for g in np.flatnonzero(good):
+                fits.append((flux[g], idx[g], c[g], knots[g], group[g][2], group[g][3],
+                             math.sqrt(max(0.5 * (cov[g, 0, 0] + cov[g, 1, 1]), 0.0))))
+        kept = []  # brightest first; a fit that lands on a brighter one's star (a trail found twice) is dropped
+        for fit in sorted(fits, key=lambda f: -f[0]):
+            if all(np.hypot(*(fit[2] - k[2])) > SHIFT_PX for k in kept):
+                kept.append(fit)
+        for flux, _, c, knots, rows, cols, _ in kept:
             x, y = cols.astype(np.float64), rows.astype(np.float64)
-            c, flux, _, cov, ok = fit_trail(work[rows, cols], x, y, centres[i], knots, sigma, noise,
-                                            outlier_sigma=self.outlier_sigma, min_snr=self.min_snr)
-            if not ok or cov is None or flux <= 0.0 or flux < self.min_snr * math.sqrt(max(cov[2, 2], 0.0)):
-                continue
-            if np.hypot(*(c - centres[i])) > SHIFT_PX or not (0 <= c[0] <= width - 1 and 0 <= c[1] <= height - 1):
-                continue
             trail = trail_model(x, y, c, knots, sigma)[0]
             still = trail_model(x, y, c, np.zeros((2, 2)), sigma)[0]
-            work[rows, cols] -= flux * trail
             out[rows, cols] += flux * (still - trail)
-            sigmas.append(math.sqrt(max(0.5 * (cov[0, 0] + cov[1, 1]), 0.0)))
+        sigmas = [k[6] for k in kept]
         self.last_info.update(kept=len(sigmas), position_sigma_px=float(np.median(sigmas)) if sigmas else None)
         return out
 

@@ -8,8 +8,8 @@ Sets: random attitudes (uniform on the sky, uniform roll) of one camera (default
 12 um, 12 deg field; ``--fov 20`` a 20 deg one with the same sensor), the stars of the Hipparcos-2 catalogue down to
 ``--mag-limit`` (default 6.5 at 12 deg, as seed 002's scenario, and 5.5 at 20 deg: a median of 22-24 stars a set)
 at epoch 2025.0, projected by the ideal pinhole; a star within ``BLEND_PX`` of a brighter one is dropped (the sensor
-sees one spot), 0.3 px Gaussian noise is added to each coordinate, stars off the sensor are dropped, the rest are
-ordered brightest first.  Every method solves the same sets; the peers run in their own virtual environment
+sees one spot), 0.3 px Gaussian noise (``--noise``) is added to each coordinate, stars off the sensor are dropped,
+the rest are ordered brightest first.  Every method solves the same sets; the peers run in their own virtual environment
 (``.peers-venv`` in the repository root, made on the first run; they pin numpy < 2) through
 ``benchmarks/peers/run_peers.py``, which also checks their pixel conventions on noise-free copies of the first sets.
 
@@ -24,7 +24,11 @@ corners by no more than that.  Latency is the wall time of one call (median, 95t
 loaded before.  Tracking gets a prior 0.05 deg off the truth (random axis) on the sets with at least 30 stars, cut to
 their 30 brightest.
 
-    python benchmarks/identify_peers.py [--sets N] [--fov {12,20}] [--mag-limit MAG] [--seed S] [--json PATH]
+    python benchmarks/identify_peers.py [--sets N] [--fov {12,20}] [--mag-limit MAG] [--seed S] [--noise PX]
+                                        [--json PATH]
+
+The tracking sweep (wrong ids with priors up to the gate's reach, 10 000 sets a case) is
+``benchmarks/tracking_robustness.py``.
 """
 
 from __future__ import annotations
@@ -73,8 +77,11 @@ def make_camera(fov_deg: int) -> Camera:
     return Camera.from_fov(float(fov_deg), 1024, 1024, 12e-6)
 
 
-def make_sets(camera: Camera, mag_limit: float, count: int, rng: np.random.Generator) -> dict:
-    """``count`` centroid sets with their truth, as flat arrays (see the module docstring and run_peers.py)."""
+def make_sets(
+    camera: Camera, mag_limit: float, count: int, rng: np.random.Generator, noise_px: float = NOISE_PX
+) -> dict:
+    """``count`` centroid sets with their truth, as flat arrays (see the module docstring and run_peers.py), with
+    ``noise_px`` Gaussian noise on each coordinate."""
     catalog = load_catalog(mag_limit, EPOCH)
     peer_units = {peer: load_catalog(mag_limit, epoch).unit for peer, epoch in PEER_EPOCHS.items()}  # same rows
     sizes, xy, clean, flux, unit, hip, attitudes = [], [], [], [], [], [], []
@@ -88,7 +95,7 @@ def make_sets(camera: Camera, mag_limit: float, count: int, rng: np.random.Gener
         blended = {j for _, j in cKDTree(true_xy).query_pairs(BLEND_PX)} if len(rows) > 1 else set()
         keep = np.setdiff1d(np.arange(len(rows)), list(blended))
         rows, true_xy = rows[keep], true_xy[keep]
-        noisy = true_xy + rng.normal(0.0, NOISE_PX, true_xy.shape)
+        noisy = true_xy + rng.normal(0.0, noise_px, true_xy.shape)
         inside = camera.in_frame(noisy)
         sizes.append(int(inside.sum()))
         xy.append(noisy[inside])
@@ -193,13 +200,14 @@ def main() -> None:
     parser.add_argument("--fov", type=int, choices=sorted(MAG_LIMIT), default=12)
     parser.add_argument("--mag-limit", type=float, default=None, help="faintest star (Hp); default by --fov")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--noise", type=float, default=NOISE_PX, help="centroid noise per axis (px)")
     parser.add_argument("--json", type=Path, default=None, help="also write the table here")
     args = parser.parse_args()
     mag_limit = MAG_LIMIT[args.fov] if args.mag_limit is None else args.mag_limit
     camera = make_camera(args.fov)
-    sets = make_sets(camera, mag_limit, args.sets, np.random.default_rng(args.seed))
+    sets = make_sets(camera, mag_limit, args.sets, np.random.default_rng(args.seed), args.noise)
     sizes = sets["sizes"]
-    print(f"{args.sets} sets, {np.degrees(camera.fov[0]):.2f} deg field, Hp <= {mag_limit}, {NOISE_PX} px noise: "
+    print(f"{args.sets} sets, {np.degrees(camera.fov[0]):.2f} deg field, Hp <= {mag_limit}, {args.noise} px noise: "
           f"{np.median(sizes):.0f} stars a set (5-95%: {np.percentile(sizes, 5):.0f}-{np.percentile(sizes, 95):.0f}); "
           f"tracking on {len(sets['track'])} sets cut to {TRACK_STARS} stars")
     ours = run_starenv(camera, sets, mag_limit)
@@ -235,7 +243,7 @@ def main() -> None:
     print(f"median tracking latency, {TRACK_STARS} stars:     {goals['tracking_median_ms']:7.3f} ms  (goal <= 1 ms)")
     if args.json is not None:
         settings = {"sets": args.sets, "fov_deg": float(sets["fov_deg"]), "mag_limit": mag_limit, "seed": args.seed,
-                    "noise_px": NOISE_PX, "tracking_sets": len(sets["track"])}
+                    "noise_px": args.noise, "tracking_sets": len(sets["track"])}
         report = {"settings": settings, "databases": databases, "table": table, "goals": goals}
         args.json.write_text(json.dumps(report, indent=2) + "\n")
 

@@ -6,17 +6,20 @@ Gaussian centroid noise; stars closer than MERGE_PX to a brighter one join its d
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import Identifier, StarMeasurements
 from starenv.agents.identify.database import build_patterns, pattern_keys
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
 from starenv.agents.identify.tracking import TrackingIdentifier
+from starenv.agents.identify.verify import chance_match, false_match_probability
 from starenv.sim.conventions import DEG
 from starenv.sim.optics import BrownConrady, Camera
 from starenv.sim.sky import load_catalog
@@ -300,15 +303,86 @@ def test_tracking_keeps_false_stars_unidentified(lost_in_space, catalog):
     assert bad_frames <= 1
 
 
-@pytest.mark.parametrize("prior_error_deg", [10.0, None])
-def test_tracking_falls_back_to_lost_in_space(lost_in_space, catalog, prior_error_deg):
+def test_tracking_without_a_prior_falls_back_to_lost_in_space(lost_in_space, catalog):
     fallback = CountingIdentifier(lost_in_space["narrow"][0])
     tracker = TrackingIdentifier(fallback=fallback)
     tracker.reset([NARROW], catalog)
-    id_rate, false_rate, _ = run_frames(tracker, [NARROW], catalog, seed=11, frames=10, prior_error_deg=prior_error_deg)
+    id_rate, false_rate, _ = run_frames(tracker, [NARROW], catalog, seed=11, frames=10, prior_error_deg=None)
     assert fallback.calls == 10
     assert id_rate >= 0.95
     assert false_rate <= 0.01
+
+
+@pytest.mark.parametrize("name, camera, seed", [("narrow", NARROW, 21), ("wide", WIDE, 22)])
+def test_tracking_through_a_prior_half_a_degree_off(lost_in_space, catalog, name, camera, seed):
+    # 0.5 deg is 43 px on the 12 deg head and 26 px on the 20 deg one, beyond the spacing of neighbouring stars: the
+    # predicted star nearest a detection is often another one.  Pairwise angles do not change with the prior's error,
+    # so tracking identifies every frame itself (no fallback), with 1 px centroid noise, and never wrongly.
+    fallback = CountingIdentifier(lost_in_space[name][0])
+    tracker = TrackingIdentifier(fallback=fallback)
+    tracker.reset([camera], catalog)
+    id_rate, false_rate, bad_frames = run_frames(
+        tracker, [camera], catalog, seed=seed, frames=40, prior_error_deg=0.5, noise_px=1.0
+    )
+    assert fallback.calls == 0
+    assert false_rate == 0.0 and bad_frames == 0
+    assert id_rate >= 0.97
+
+
+def test_a_prior_far_off_falls_back_and_a_planted_chance_pairing_is_rejected(lost_in_space, catalog):
+    # The prior is 10 deg off across the boresight, so no detection's star is within the gate (50 px).  Three faint
+    # detections are planted exactly where the prior puts three catalogue stars: a pairing that agrees in every angle
+    # and that a tracker counting pairs accepts.  Its false-match bound H P(X >= 1), X ~ Binomial(n - 2, p ~ 5e-4),
+    # is far above max_false: the frame goes to lost in space, which labels the true stars and not the planted ones.
+    lis = lost_in_space["narrow"][0]
+    fallback = CountingIdentifier(lis)
+    tracker = TrackingIdentifier(fallback=fallback)
+    tracker.reset([NARROW], catalog)
+    rng = np.random.default_rng(23)
+    attitude = Rotation.random(random_state=rng)
+    stars, truth = scene([NARROW], catalog, attitude, rng)
+    prior = Rotation.from_rotvec([10.0 * DEG, 0.0, 0.0]) * attitude
+    rows = catalog.cone(prior.as_matrix()[2], NARROW.half_diagonal)
+    xy, front = NARROW.project(catalog.unit[rows] @ prior.as_matrix().T)
+    apart = front & NARROW.in_frame(xy)
+    apart &= np.linalg.norm(xy[:, None] - stars[0].xy[None], axis=2).min(axis=1, initial=np.inf) > 100.0
+    apart &= ~np.isin(catalog.hip[rows], truth[0])  # stars that are not in the true field too
+    planted = np.flatnonzero(apart)[:3]
+    assert len(planted) == 3
+    fooled = StarMeasurements(np.vstack([stars[0].xy, xy[planted]]),
+                              np.concatenate([stars[0].flux, np.full(3, stars[0].flux.min() / 2)]))
+    planted_hip = catalog.hip[rows[planted]]
+    result = tracker.identify([fooled], [NARROW], prior)[0].catalog_id
+    assert fallback.calls == 1
+    assert np.array_equal(result, lis.identify([fooled], [NARROW], None)[0].catalog_id)
+    assert np.array_equal(result[: len(truth[0])], truth[0])
+    assert not np.isin(result, planted_hip).any()
+    unverified = TrackingIdentifier(fallback=fallback, max_false=1.0)  # the verification is what refuses it
+    unverified.reset([NARROW], catalog)
+    assert np.array_equal(unverified.identify([fooled], [NARROW], prior)[0].catalog_id[-3:], planted_hip)
+    assert fallback.calls == 1
+
+
+def test_false_match_probability_matches_monte_carlo_on_random_star_fields():
+    # Stars: a Poisson field on a 1024^2 sensor; detections: uniform, at least the radius from the edges.  The closed
+    # form P(X >= k), X ~ Binomial(n, 1 - exp(-density pi r^2)), against the fraction of fields with k or more
+    # detections within r of a star.  The single-detection case at r = 40 px tells the Poisson form (p = 0.25) from
+    # its linearisation density pi r^2 (0.29).
+    rng = np.random.default_rng(24)
+    size, density, trials = 1024.0, 60.0 / 1024.0**2, 20_000
+    for n, radius, ks in ((30, 10.0, (1, 2, 3, 4)), (1, 40.0, (1,))):
+        hits = np.empty(trials, dtype=np.int64)
+        for t in range(trials):
+            field = rng.uniform(0.0, size, (rng.poisson(density * size**2), 2))
+            detections = rng.uniform(radius, size - radius, (n, 2))
+            hits[t] = np.sum(cKDTree(field).query(detections, distance_upper_bound=radius)[0] <= radius)
+        p = chance_match(density, radius)
+        for k in ks:
+            expected = false_match_probability(n, k, p)
+            assert abs(np.mean(hits >= k) - expected) <= 4.0 * np.sqrt(expected * (1.0 - expected) / trials)
+    assert false_match_probability(30, 5, 1e-3, given=2, hypotheses=100) == pytest.approx(
+        100 * sum(math.comb(28, j) * 1e-3**j * (1 - 1e-3) ** (28 - j) for j in range(3, 29)), rel=1e-9
+    )
 
 
 def test_tracking_pools_heads(multi_head):
@@ -397,7 +471,9 @@ def test_a_corrupt_database_is_rebuilt(catalog, damage):
         (LostInSpaceIdentifier, "match_threshold", 0.0),
         (LostInSpaceIdentifier, "max_pattern_stars", 2),
         (TrackingIdentifier, "gate_px", float("nan")),
-        (TrackingIdentifier, "refine_gate_px", 50.0),
+        (TrackingIdentifier, "refine_gate_px", 60.0),
+        (TrackingIdentifier, "centroid_noise_px", 0.0),
+        (TrackingIdentifier, "max_false", 2.0),
         (TrackingIdentifier, "min_matches", 2),
         (TrackingIdentifier, "fallback", "lost"),
     ],

@@ -31,15 +31,13 @@ Lost in space (:class:`LostInSpaceIdentifier`)
     one matching most detections wins.  Matching and refining the attitude then alternate, the search widened by the
     attitude's uncertainty (a pattern in one small field leaves the roll about it loose, which moves the stars of the
     other heads), and every detection within the match radius of a catalogue star is labelled (one detection a star,
-    the closest).  Verifying and refining compare the detections with the database stars of a cone about each head's
+    the closest; a detection with two catalogue stars within its radius is left unidentified: which one made it is a
+    guess).  Verifying and refining compare the detections with the database stars of a cone about each head's
     boresight, by brute force (both sets are small), rather than through the k-d tree of the whole sky.
 
-Tracking (:class:`TrackingIdentifier`)
-    With a prior attitude (inertial -> body), the catalogue stars near each head's boresight (a cone query) are
-    rotated into the body frame and paired with the detections' body vectors within ``gate_px`` (an angle through
-    each head's plate scale) by a Hungarian assignment on squared distance, so each star and each detection is used
-    once; the attitude is refined from the pairs and the pairing repeated with ``refine_gate_px``.  With no prior, or
-    fewer than ``min_matches`` stars paired, the fallback (lost in space by default) labels the frame.
+Tracking (:class:`TrackingIdentifier`, :mod:`starenv.agents.identify.tracking`)
+    With a prior attitude: detections paired with the catalogue stars within a gate of their predicted positions by
+    the agreement of pairwise angles, solved, re-paired tightly and verified; this identifier is its fallback.
 
     Both identifiers take a star closer than ``MERGE_PX`` pixels to a brighter one as part of it (the sensor sees
     one star): detections are matched to the brighter only.
@@ -194,8 +192,9 @@ class LostInSpaceIdentifier:
             frame = self._frame(body, heads, stars, cameras)
             attitude = self._solve(frame, stars)
             if attitude is not None:
-                distance, nearest = self._label_tree.query(body @ attitude, distance_upper_bound=frame.max_radius)
-                labelled, stars_hit = closest_per_star((distance <= frame.radius).nonzero()[0], nearest, distance)
+                distance, nearest = self._label_tree.query(body @ attitude, k=2, distance_upper_bound=frame.max_radius)
+                alone = ((distance[:, 0] <= frame.radius) & (distance[:, 1] > frame.radius)).nonzero()[0]
+                labelled, stars_hit = closest_per_star(alone, nearest[:, 0], distance[:, 0])
                 ids[labelled] = self._label_hip[stars_hit]
         return with_ids(stars, ids)
 

@@ -1,13 +1,27 @@
-"""Verifying an attitude hypothesis against the catalogue, for identifiers that first guess and then check.
+"""Verifying an attitude hypothesis against the catalogue, for identifiers that first guess and then check, and the
+false-match probability every verifier uses.
 
-For a hypothesis (inertial -> body), every head's catalogue stars in its field are projected, each detection is
-paired with the nearest projected star within ``radius_px`` (one detection a star, closest pairs first), the
-attitude is refined from the pairs (SVD solution of Wahba's problem) and the pairing repeated.  With ``n``
-detections in all heads, ``m`` paired, and ``p`` the chance that a random detection lands within ``radius_px`` of
-some catalogue star (stars in the field times the disc area over the image area), the probability that a wrong
-attitude pairs as many is ``P(X >= m - g)`` for ``X ~ Binomial(n - g, p)``, where ``g`` detections were used to
-form the hypothesis and pair by construction (as tetra3 / cedar-solve verify).  Callers compare it, multiplied by
-the number of hypotheses they tried, against their threshold.
+The false-match probability.  Take a wrong attitude: it puts each detection's direction on a patch of sky unrelated
+to the star that made it.  The catalogue stars around that patch are modelled as a Poisson field of ``density``
+stars per steradian (the stars counted in the field divided by its solid angle), so the chance that at least one
+lies within ``r`` rad of the detection is ``p = 1 - exp(-density * pi * r**2)`` (:func:`chance_match`; ``~ density *
+pi * r**2`` when small; the same with stars per px^2 and ``r`` in px).  Detections more than ``2 r`` apart look at
+disjoint discs of a Poisson field, so these events are independent.  Of ``n`` detections, the ``g`` the hypothesis was
+built from pair by construction; each of the other ``n - g`` pairs by chance with probability ``p``, so the number
+``X`` that do is Binomial(n - g, p) and the probability that a wrong attitude pairs ``m`` detections or more is
+
+    P_false(m) = P(X >= m - g) = sum_{j = m-g}^{n-g} C(n-g, j) p^j (1 - p)^(n-g-j)
+
+(:func:`false_match_probability`, as tetra3 / cedar-solve verify).  A search that tried ``H`` hypotheses accepts a
+wrong one with probability at most ``H * P_false(m)`` (union bound); each verifier states its ``g`` and ``H`` and
+compares that bound with its threshold.  The model leaves out the edges of the field (fewer stars around a detection
+near a corner: the bound stays an upper one) and clustering of stars (the galactic plane: ``density`` is measured in
+each field, not over the sky).
+
+:func:`verify`: for a hypothesis (inertial -> body), every head's catalogue stars in its field are projected, each
+detection is paired with the nearest projected star within ``radius_px`` (one detection a star, closest pairs first),
+the attitude is refined from the pairs (SVD solution of Wahba's problem) and the pairing repeated; ``p`` there is the
+stars in the field times the disc area over the image area.
 """
 
 from __future__ import annotations
@@ -17,11 +31,26 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from scipy.stats import binom
+from scipy.special import bdtrc
 
 from starenv.agents.solve import wahba_svd
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
+
+
+def chance_match(density: float | np.ndarray, radius: float | np.ndarray) -> float | np.ndarray:
+    """Probability that a Poisson field of ``density`` stars per unit area has one within ``radius`` of a point
+    (``density`` per sr with ``radius`` in rad, or per px^2 with px)."""
+    return -np.expm1(-density * math.pi * np.square(radius))
+
+
+def false_match_probability(n: int, m: int, p: float, given: int = 0, hypotheses: float = 1.0) -> float:
+    """Bound on the probability that a wrong attitude, among ``hypotheses`` tried, pairs ``m`` of ``n`` detections
+    when ``given`` of them pair by construction and each other one by chance with probability ``p``:
+    ``min(1, hypotheses * P(X >= m - given))``, ``X ~ Binomial(n - given, p)`` (see the module docstring)."""
+    if m <= given:
+        return 1.0
+    return min(1.0, float(hypotheses * bdtrc(m - given - 1, n - given, p)))
 
 
 def wahba(body: np.ndarray, inertial: np.ndarray) -> Rotation:
@@ -83,5 +112,5 @@ def verify(attitude: Rotation, body: np.ndarray, heads: np.ndarray, cameras: lis
         attitude = wahba(np.array(pairs_b), np.array(pairs_r))
     m = int((ids >= 0).sum())
     p = expected / n if n else 0.0
-    p_false = float(binom.sf(m - given - 1, n - given, p)) if m > given else 1.0
+    p_false = false_match_probability(n, m, p, given)
     return Verdict(ids, m, n, p_false, attitude)

@@ -161,7 +161,7 @@ def test_streak_candidates_peaks_are_scipys_maxima_of_the_matched_filter():
     streak = rendered_trail((15, 15), (7.0, 7.0), line(8.0, 0.3), 1.0)
     for xy, flux in (((40.2, 30.7), 900.0), ((100.6, 80.1), 400.0), ((130.0, 20.0), 2000.0)):
         frame += rendered_trail(frame.shape, xy, line(8.0, 0.3), flux)
-    centres, peaks = streak_candidates(frame, 100.0, 5.0, streak, 5.0, 4, at="peak")
+    _, centres, peaks = streak_candidates(frame, 100.0, 5.0, streak, 5.0, 4)
     response = cv2.filter2D((frame - 100.0).astype(np.float32), cv2.CV_32F, streak.astype(np.float32),
                             borderType=cv2.BORDER_REFLECT) / (5.0 * np.sqrt(np.sum(streak**2)))
     _, labels, stats, _ = cv2.connectedComponentsWithStats((response > 5.0).astype(np.uint8), connectivity=8,

@@ -217,13 +217,14 @@ def robust_background(image: np.ndarray) -> tuple[float, float]:
 
 
 def streak_candidates(data: np.ndarray, level: float, noise: float, streak: np.ndarray, threshold_sigma: float,
-                      min_area_px: int, at: str = "centroid") -> tuple[np.ndarray, np.ndarray]:
+                      min_area_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Candidate streaks of a frame (DN): the frame less its background ``level`` correlated with the expected trail
     ``streak`` (the matched filter of a trail); 8-connected components of at least ``min_area_px`` pixels where the
     response exceeds ``threshold_sigma`` times its noise (white pixel ``noise`` through the filter).  Returns their
-    positions (k, 2) px (x, y), ``at`` their ``"centroid"`` or at their response's ``"peak"`` (either is the trail's
-    centre, as the response of a trail is symmetric about it; the peak is not moved by a trail cut by the frame's
-    edge or the threshold), and their peak responses (k,) in noise sigmas."""
+    centroids (k, 2) px (x, y), the positions of their response's peaks (k, 2) px and the peak responses (k,) in
+    noise sigmas.  Either position is the trail's centre where the trail matches ``streak`` (the response is then
+    symmetric about it, and the peak is not moved by a trail cut by the frame's edge); where the trail is longer than
+    ``streak`` the response has a plateau and only the centroid is its centre."""
     template = streak.astype(np.float32)
     response = cv2.filter2D((data - level).astype(np.float32), cv2.CV_32F, template, borderType=cv2.BORDER_REFLECT)
     response /= noise * float(np.sqrt(np.sum(streak**2)))
@@ -231,16 +232,14 @@ def streak_candidates(data: np.ndarray, level: float, noise: float, streak: np.n
     n, labels, stats, centroids = cv2.connectedComponentsWithStats(above, connectivity=8, ltype=cv2.CV_32S)
     keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area_px) + 1
     if len(keep) == 0:
-        return np.zeros((0, 2)), np.zeros(0)
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
     flat = np.flatnonzero(above)  # the pixels above the threshold, sorted by (component, response)
     lab, val = labels.ravel()[flat], response.ravel()[flat]
     order = np.lexsort((val, lab))
     last = np.flatnonzero(np.diff(lab[order], append=n))  # the strongest pixel of each component 1 .. n - 1
     top = flat[order[last]][keep - 1]
-    peaks = response.ravel()[top].astype(np.float64)
-    if at == "peak":
-        return np.stack([top % data.shape[1], top // data.shape[1]], axis=1).astype(np.float64), peaks
-    return centroids[keep].reshape(-1, 2), peaks
+    peak_xy = np.stack([top % data.shape[1], top // data.shape[1]], axis=1).astype(np.float64)
+    return centroids[keep].reshape(-1, 2), peak_xy, response.ravel()[top].astype(np.float64)
 
 
 def checked_image(image, camera: Camera) -> np.ndarray:

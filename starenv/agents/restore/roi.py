@@ -50,7 +50,7 @@ class RoiDeblurrer:
         sigma = sigma_for(self.psf_sigma_px, cam)
         level, noise = robust_background(data)
         streak, _ = frame_kernel(step, head, sigma)
-        centres, _ = streak_candidates(data, level, noise, streak, self.threshold_sigma, self.min_area_px)
+        centres, _, _ = streak_candidates(data, level, noise, streak, self.threshold_sigma, self.min_area_px)
         out = data.copy()
         self.last_info = {"iterations": self.iterations, "candidates": int(len(centres)), "skipped": 0,
                           "batches": 0, "patch_px": 0}

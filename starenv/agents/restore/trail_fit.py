@@ -42,7 +42,14 @@ from scipy.special import erf
 from starenv import checks
 from starenv.agents.base import StepInput
 from starenv.agents.restore.algorithms import checked_image, robust_background, streak_candidates
-from starenv.agents.restore.kernels import frame_kernel, sigma_for, spot_sigma, star_paths, window
+from starenv.agents.restore.kernels import (
+    exposure_path,
+    frame_kernel,
+    sigma_for,
+    spot_sigma,
+    star_paths,
+    window,
+)
 
 PSF_REACH_SIGMA = 4.0  # the fit covers pixels within this many spot sigmas (+ SHIFT_PX) of the trail
 SHIFT_PX = 2.0  # how far the fit may move a candidate from its first position before its pixels run out (px)
@@ -262,8 +269,7 @@ class TrailFitDeblurrer:
         sigma = sigma_for(self.psf_sigma_px, cam)
         level, noise = robust_background(data)
         streak, _ = frame_kernel(step, head, sigma)
-        centres, strength = streak_candidates(data, level, noise, streak, self.threshold_sigma, self.min_area_px,
-                                              at="peak")
+        centres, peaks, _ = streak_candidates(data, level, noise, streak, self.threshold_sigma, self.min_area_px)
         self.last_info = {"candidates": int(len(centres)), "kept": 0, "position_sigma_px": None}
         out = data.copy()
         if len(centres) == 0:
@@ -272,6 +278,12 @@ class TrailFitDeblurrer:
         t0, t1 = window(step)
         paths = star_paths(cam, step.gyro, t0, t1, centres)
         mid = paths.shape[1] // 2
+        # Start at the filter's peak where the candidate's trail is about as long as the filter's (the frame
+        # centre's) streak, at the component's centroid where it is longer (about the boresight the centre's streak
+        # is a point and the response of an arc has a plateau).
+        length = np.linalg.norm(np.diff(paths, axis=1), axis=2).sum(axis=1)
+        centre_length = float(np.linalg.norm(np.diff(exposure_path(step, head), axis=0), axis=1).sum())
+        centres = np.where((length <= 1.25 * centre_length + 2.0)[:, None], peaks, centres)
         reach = PSF_REACH_SIGMA * sigma + SHIFT_PX
         height, width = data.shape
         cands = []  # (index, knots, rows, cols) of each candidate with enough pixels

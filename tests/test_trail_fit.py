@@ -118,7 +118,10 @@ def test_a_still_frame_comes_back_unchanged():
         image = step.images[0]
         agent = TrailFitDeblurrer()
         np.testing.assert_array_equal(agent.deblur(image, 0, step), image)
-        assert agent.last_info["kept"] > 10  # every star was fitted: its trail and its still star are the same
+        assert agent.last_info["kept"] == 0  # no trail reaches min_trail_px
+        every = TrailFitDeblurrer(min_trail_px=0.0)
+        np.testing.assert_array_equal(every.deblur(image, 0, step), image)
+        assert every.last_info["kept"] > 10  # every star was fitted: its trail and its still star are the same
 
 
 def test_fast_frames_give_more_stars_and_smaller_errors_than_the_blurred_ones():
@@ -148,6 +151,8 @@ def test_bad_options_name_the_field():
         TrailFitDeblurrer(min_snr=-1.0)
     with pytest.raises(ValueError, match="threshold_sigma"):
         TrailFitDeblurrer(threshold_sigma=0.0)
+    with pytest.raises(ValueError, match="min_trail_px"):
+        TrailFitDeblurrer(min_trail_px=float("nan"))
 
 
 def test_streak_candidates_peaks_are_scipys_maxima_of_the_matched_filter():

@@ -248,19 +248,23 @@ class TrailFitDeblurrer:
     Options: ``psf_sigma_px`` (None: the camera's spot sigma), ``threshold_sigma`` and ``min_area_px`` of the
     candidate finder, ``min_snr`` (least ``F / sigma_F`` of a kept fit), ``outlier_sigma`` (pixels this many noise
     sigmas above the first fit are left out), ``max_box_px`` (candidates whose trail box is larger on either side
-    are left as observed).  ``last_info``: candidates, fits kept, median fitted position sigma (px).
+    are left as observed), ``min_trail_px`` (candidates whose trail is shorter are left as observed: a trail of a
+    few pixels is a slightly elongated spot, which the detector's own centroid already handles, and the model's
+    approximate pixel integration would only add its 1 % shape error).  ``last_info``: candidates, fits kept,
+    median fitted position sigma (px).
     """
 
     iterations = 0
 
     def __init__(self, psf_sigma_px: float | None = None, threshold_sigma: float = 5.0, min_area_px: int = 4,
-                 min_snr: float = 5.0, outlier_sigma: float = 5.0, max_box_px: int = 1024):
+                 min_snr: float = 5.0, outlier_sigma: float = 5.0, max_box_px: int = 1024, min_trail_px: float = 4.0):
         self.psf_sigma_px = spot_sigma(psf_sigma_px)
         self.threshold_sigma = checks.in_range("threshold_sigma", threshold_sigma, 0.0, 100.0, low_open=True)
         self.min_area_px = checks.integer("min_area_px", min_area_px, 1, 10**6)
         self.min_snr = checks.in_range("min_snr", min_snr, 0.0, 1e6)
         self.outlier_sigma = checks.in_range("outlier_sigma", outlier_sigma, 1.0, 1e6, low_open=True)
         self.max_box_px = checks.integer("max_box_px", max_box_px, 8, 1 << 16)
+        self.min_trail_px = checks.in_range("min_trail_px", min_trail_px, 0.0, 1e4, unit="px")
         self.last_info: dict = {}
 
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
@@ -287,7 +291,7 @@ class TrailFitDeblurrer:
         reach = PSF_REACH_SIGMA * sigma + SHIFT_PX
         height, width = data.shape
         cands = []  # (index, knots, rows, cols) of each candidate with enough pixels
-        for i in range(len(centres)):
+        for i in np.flatnonzero(length >= self.min_trail_px):
             knots = chords(paths[i] - paths[i, mid])
             lo = np.floor(centres[i] + knots.min(axis=0) - reach).astype(np.int64)
             hi = np.ceil(centres[i] + knots.max(axis=0) + reach).astype(np.int64)

@@ -137,7 +137,6 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
     deblurrers = {r.pipeline.build(scenario_mod.load(r.scenario)).describe()["deblurrer"] for r in bench.runs}
     assert {"starenv.agents.restore.iteration.deblurrer:IterationNetDeblurrer",
             "starenv.agents.restore.curvature:CurvatureRLDeblurrer", "starenv.agents.restore.frame:WienerDeblurrer",
-            "starenv.agents.restore.roi:RoiDeblurrer",
             "starenv.agents.restore.trail_fit:TrailFitDeblurrer"} < deblurrers
 
 

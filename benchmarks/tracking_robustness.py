@@ -25,6 +25,7 @@ import os
 import pstats
 import tempfile
 import time
+from types import SimpleNamespace
 from unittest import mock
 
 import numpy as np
@@ -44,20 +45,6 @@ TRACK_STARS = 30
 MIN_STARS = 5
 
 
-class Counting:
-    """An identifier that counts its calls."""
-
-    def __init__(self, inner):
-        self.inner, self.calls = inner, 0
-
-    def reset(self, cameras, catalog):
-        self.inner.reset(cameras, catalog)
-
-    def identify(self, stars, cameras, prior, images=None):
-        self.calls += 1
-        return self.inner.identify(stars, cameras, prior, images)
-
-
 def priors(attitudes: np.ndarray, error_deg: float, rng: np.random.Generator) -> Rotation:
     """The true attitudes (k, 3, 3) turned by ``error_deg`` about random axes."""
     axes = rng.normal(size=(len(attitudes), 3))
@@ -65,9 +52,9 @@ def priors(attitudes: np.ndarray, error_deg: float, rng: np.random.Generator) ->
     return Rotation.from_rotvec(axes * error_deg * DEG) * Rotation.from_matrix(attitudes)
 
 
-def case(tracker: TrackingIdentifier, fallback: Counting, camera, stars, hips, prior: Rotation) -> dict:
-    """Scores of one (field, noise, prior error) case over all sets."""
-    fallback.calls = 0
+def case(tracker: TrackingIdentifier, fallback, camera, stars, hips, prior: Rotation) -> dict:
+    """Scores of one (field, noise, prior error) case over all sets; ``fallback.identify`` is a counting mock."""
+    fallback.identify.reset_mock()
     wrong_sets = solved = solved_big = big = correct = total = 0
     for i, (s, hip) in enumerate(zip(stars, hips, strict=True)):
         ids = tracker.identify([s], [camera], prior[i])[0].catalog_id
@@ -79,7 +66,7 @@ def case(tracker: TrackingIdentifier, fallback: Counting, camera, stars, hips, p
         solved_big += ok and len(s) >= MIN_STARS
         correct, total = correct + right, total + len(s)
     return {"sets": len(stars), "wrong_sets": wrong_sets, "solved": solved, "big": big, "solved_big": solved_big,
-            "fallbacks": fallback.calls, "id_rate": correct / total}
+            "fallbacks": fallback.identify.call_count, "id_rate": correct / total}
 
 
 def latency(identifier, camera, stars, prior) -> np.ndarray:
@@ -109,7 +96,7 @@ def main() -> None:
         camera = make_camera(fov)
         catalog = load_catalog(MAG_LIMIT[fov], EPOCH)
         lis = LostInSpaceIdentifier()
-        fallback = Counting(lis)
+        fallback = SimpleNamespace(reset=lis.reset, identify=mock.Mock(wraps=lis.identify))  # counts fallbacks
         tracker = TrackingIdentifier(fallback=fallback)
         with tempfile.TemporaryDirectory() as cache, mock.patch.dict(os.environ, {"STARENV_CACHE_DIR": cache}):
             tracker.reset([camera], catalog)

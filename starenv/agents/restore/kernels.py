@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv import checks
 from starenv.agents.base import StepInput
+from starenv.agents.restore.algorithms import checked_image, robust_background, streak_candidates
 from starenv.sim.gyro import GyroSamples
 from starenv.sim.optics import Camera
 from starenv.sim.render import band_fractions
@@ -279,3 +280,31 @@ def centre_kernel(step, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndar
     path = exposure_path(step, head, (camera.cx, camera.cy))
     kernel, _ = path_kernel(path, sigma_px)
     return kernel, np.ptp(path, axis=0)
+
+
+@dataclass
+class FrameStreaks:
+    """One head's frame ready for restoration: the checked frame ``data`` (DN), the spot ``sigma`` (px), the robust
+    background ``level`` and ``noise`` (DN), and the candidate streaks of
+    :func:`~starenv.agents.restore.algorithms.streak_candidates` (``centroids`` and ``peaks`` (k, 2) px) found with the
+    frame centre's kernel."""
+
+    data: np.ndarray
+    sigma: float
+    level: float
+    noise: float
+    centroids: np.ndarray
+    peaks: np.ndarray
+
+
+def frame_streaks(image, head: int, step: StepInput, psf_sigma_option: float | None, threshold_sigma: float,
+                  min_area_px: int) -> FrameStreaks:
+    """The :class:`FrameStreaks` of head ``head``'s ``image`` at ``step`` (``psf_sigma_option``: a deblurrer's
+    ``psf_sigma_px``, None for the calibrated camera's)."""
+    cam = step.cameras[head]
+    data = checked_image(image, cam)
+    sigma = sigma_for(psf_sigma_option, cam)
+    level, noise = robust_background(data)
+    streak, _ = frame_kernel(step, head, sigma)
+    centroids, peaks, _ = streak_candidates(data, level, noise, streak, threshold_sigma, min_area_px)
+    return FrameStreaks(data, sigma, level, noise, centroids, peaks)

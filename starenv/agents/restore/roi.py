@@ -9,13 +9,16 @@ import numpy as np
 from starenv import checks
 from starenv.agents.base import StepInput
 from starenv.agents.restore.algorithms import (
-    checked_image,
     convolve_batch,
     richardson_lucy_batch,
-    robust_background,
-    streak_candidates,
 )
-from starenv.agents.restore.kernels import frame_kernel, path_kernel, sigma_for, spot_sigma, star_paths, window
+from starenv.agents.restore.kernels import (
+    frame_streaks,
+    path_kernel,
+    spot_sigma,
+    star_paths,
+    window,
+)
 
 PATCH_STEP_PX = 8  # patch sizes are rounded up to multiples of this, one Richardson-Lucy batch per size
 
@@ -46,11 +49,8 @@ class RoiDeblurrer:
 
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         cam = step.cameras[head]
-        data = checked_image(image, cam)
-        sigma = sigma_for(self.psf_sigma_px, cam)
-        level, noise = robust_background(data)
-        streak, _ = frame_kernel(step, head, sigma)
-        centres, _, _ = streak_candidates(data, level, noise, streak, self.threshold_sigma, self.min_area_px)
+        found = frame_streaks(image, head, step, self.psf_sigma_px, self.threshold_sigma, self.min_area_px)
+        data, sigma, level, centres = found.data, found.sigma, found.level, found.centroids
         out = data.copy()
         self.last_info = {"iterations": self.iterations, "candidates": int(len(centres)), "skipped": 0,
                           "batches": 0, "patch_px": 0}

@@ -41,11 +41,9 @@ from scipy.special import erf
 
 from starenv import checks
 from starenv.agents.base import StepInput
-from starenv.agents.restore.algorithms import checked_image, robust_background, streak_candidates
 from starenv.agents.restore.kernels import (
     exposure_path,
-    frame_kernel,
-    sigma_for,
+    frame_streaks,
     spot_sigma,
     star_paths,
     window,
@@ -269,11 +267,8 @@ class TrailFitDeblurrer:
 
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         cam = step.cameras[head]
-        data = checked_image(image, cam)
-        sigma = sigma_for(self.psf_sigma_px, cam)
-        level, noise = robust_background(data)
-        streak, _ = frame_kernel(step, head, sigma)
-        centres, peaks, _ = streak_candidates(data, level, noise, streak, self.threshold_sigma, self.min_area_px)
+        found = frame_streaks(image, head, step, self.psf_sigma_px, self.threshold_sigma, self.min_area_px)
+        data, sigma, noise, centres, peaks = found.data, found.sigma, found.noise, found.centroids, found.peaks
         self.last_info = {"candidates": int(len(centres)), "kept": 0, "position_sigma_px": None}
         out = data.copy()
         if len(centres) == 0:

@@ -9,8 +9,9 @@ kernels are centred on mid-exposure).  A star counts as failed when the window h
 sigmas of the restored frame or its error exceeds 2 px; failed stars are counted, not averaged.  The seed's method
 is scored twice: on its restored image (the RL estimate, ``CurvatureRLDeblurrer.restore``: the paper's measure) and on
 the deblurrer's output (that estimate resharpened into the raw frame, what a pipeline's detector gets); both rows
-give the time of the two together.  The trail fit (``TrailFitDeblurrer``, no deconvolution) is scored on its output
-the same way.  A second table splits the errors by the star's signal (electrons over the exposure), which is what
+give the time of the two together.  The same restorer on patches around the candidate streaks (``region="streaks"``, the
+real-time mode) is scored on its output.  The trail fit (``TrailFitDeblurrer``, no deconvolution) is scored on its
+output the same way.  A second table splits the errors by the star's signal (electrons over the exposure), which is what
 decides whether a centroid reaches 0.1 px.
 
     python benchmarks/seed001_restoration.py [--rates 1 2 4] [--frames 4] [--seed 1] [--min-electrons 0]
@@ -37,6 +38,7 @@ WIENER_NSR = 0.1
 WIENER = f"Wiener (nsr {WIENER_NSR:g})"
 RESTORED = "curvature + RL, Eq. 25 stop: restored image"
 RESHARPENED = "curvature + RL, Eq. 25 stop: deblur() output"
+STREAKS = "curvature + RL, Eq. 25 stop, streak patches (region='streaks'): deblur() output"
 TRAIL_FIT = "trail fit: deblur() output"
 SIGNAL_BINS_E = (0.0, 3e3, 1e4, 3e4, np.inf)  # electrons over the exposure
 
@@ -68,6 +70,7 @@ def run(rates, frames: int, seed: int, min_electrons: float = 0.0, pointing=None
         sigma = env.scenario.heads[0].psf_sigma_px  # the sensor's spot: the still stars are drawn with it
         wiener = WienerDeblurrer(nsr=WIENER_NSR, psf_sigma_px=sigma)
         curvature = CurvatureRLDeblurrer(psf_sigma_px=sigma)
+        streaks = CurvatureRLDeblurrer(psf_sigma_px=sigma, region="streaks")
         trail_fit = TrailFitDeblurrer(psf_sigma_px=sigma)
 
         def seed_method(image, step, curvature=curvature, sigma=sigma):
@@ -76,8 +79,9 @@ def run(rates, frames: int, seed: int, min_electrons: float = 0.0, pointing=None
 
         methods = [(wiener, lambda image, step, wiener=wiener: {WIENER: wiener.deblur(image, 0, step)}),
                    (curvature, seed_method),
+                   (streaks, lambda image, step, streaks=streaks: {STREAKS: streaks.deblur(image, 0, step)}),
                    (trail_fit, lambda image, step, trail_fit=trail_fit: {TRAIL_FIT: trail_fit.deblur(image, 0, step)})]
-        names = (WIENER, RESTORED, RESHARPENED, TRAIL_FIT)
+        names = (WIENER, RESTORED, RESHARPENED, STREAKS, TRAIL_FIT)
         stats = {name: {"err": [], "fail": 0, "ms": [], "iters": [], "e": []} for name in names}
         obs, info = env.reset(seed=seed)
         for k in range(frames):

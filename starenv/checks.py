@@ -67,3 +67,10 @@ def integer(name: str, value, low: int, high: int) -> int:
     if not low <= v <= high:
         raise ValueError(f"{name} must be an integer in [{low}, {high}], got {v}")
     return v
+
+
+def choice(name: str, value, options) -> str:
+    """One of ``options`` (strings)."""
+    if not isinstance(value, str) or value not in options:
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, options))}, got {value!r}")
+    return value

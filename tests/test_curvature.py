@@ -16,8 +16,9 @@ from starenv.agents.restore.algorithms import (
     plane_distances,
     resharpen,
     richardson_lucy,
+    richardson_lucy_batch,
 )
-from starenv.agents.restore.curvature import CentroidStop, CurvatureRLDeblurrer, window_centroids
+from starenv.agents.restore.curvature import CentroidStop, CurvatureRLDeblurrer, patch_centroids, window_centroids
 from starenv.agents.restore.kernels import path_kernel, star_paths
 from starenv.sim.gyro import GyroSamples
 from starenv.sim.optics import Camera
@@ -216,3 +217,20 @@ def test_deblurrer_restores_a_smeared_star_to_its_mid_exposure_position():
     out = agent.deblur(noisy, 0, step)
     assert agent.last_info["iterations"] == info["iterations"]
     np.testing.assert_allclose(out, resharpen(noisy.astype(np.float64), estimate, kernel, camera.psf_sigma_px))
+
+
+def test_a_stack_is_filtered_image_by_image_and_batched_rl_stops_on_its_callback():
+    rng = np.random.default_rng(4)
+    stack = rng.normal(100.0, 10.0, (4, 23, 31))
+    stack[:, 11, 15] += 400.0
+    np.testing.assert_array_equal(curvature_filter(stack, 20.0), np.stack([curvature_filter(x, 20.0) for x in stack]))
+    # patch_centroids: each image one window, as window_centroids over the whole image.
+    boxes = np.array([[0, 0, 31, 23]])
+    np.testing.assert_allclose(patch_centroids(stack, 0.2), [window_centroids(x, boxes, 0.2)[0] for x in stack])
+    psfs = np.tile(np.full((1, 5), 0.2), (4, 1, 1))
+    seen = []
+    out = richardson_lucy_batch(np.maximum(stack, 0), psfs, 50, background=90.0, initial=np.maximum(stack - 90.0, 1.0),
+                                callback=lambda k, f: seen.append(k) or k == 7)
+    assert seen == list(range(1, 8)) and out.shape == stack.shape
+    with pytest.raises(ValueError, match="initial must be a positive array"):
+        richardson_lucy_batch(np.maximum(stack, 0), psfs, 5, initial=np.zeros(stack.shape))

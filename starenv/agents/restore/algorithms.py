@@ -129,15 +129,17 @@ def richardson_lucy(image, psf, iterations: int, *, background=0.0, initial=None
     return f
 
 
-def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0, circular: bool = False) -> np.ndarray:
+def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0, circular: bool = False,
+                          initial=None, callback: Callable[[int, np.ndarray], bool] | None = None) -> np.ndarray:
     """Richardson-Lucy on a stack of patches, each with its own kernel, all at once (batched FFTs).
 
     ``patches`` (b, h, w) >= 0; ``psfs`` (b, kh, kw) non-negative (normalised here; pad kernels of different sizes
-    with zeros about a common centre); ``background`` scalar or (b,): each patch's level.  Each patch starts from its
-    flat mean (as :func:`richardson_lucy` with ``initial=None``).  Computed in float32 when ``patches`` and ``psfs``
-    are both float32 (half the cost of the transforms), else in float64.  ``circular``: convolve periodically on the
-    patch itself (transforms of the patch size instead of patch + kernel - 1; for patches whose border holds only
-    background, where the wrap-around is harmless).  Returns (b, h, w) in the working precision.
+    with zeros about a common centre); ``background`` scalar or (b,): each patch's level; ``initial``: the starting
+    estimates (b, h, w) > 0, None: each patch's flat mean (as :func:`richardson_lucy`); ``callback(iteration,
+    estimates)`` after every iteration (1-based) stops them all by returning True.  Computed in float32 when ``patches``
+    and ``psfs`` are both float32 (half the cost of the transforms), else in float64.  ``circular``: convolve
+    periodically on the patch itself (transforms of the patch size instead of patch + kernel - 1; for patches whose
+    border holds only background, where the wrap-around is harmless).  Returns (b, h, w) in the working precision.
     """
     single = getattr(patches, "dtype", None) == np.float32 and getattr(psfs, "dtype", None) == np.float32
     g = _image("patches", patches, 3)
@@ -153,12 +155,20 @@ def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0, cir
     if np.any(b < 0) or b.shape not in ((), (len(g),)):
         raise ValueError(f"background must be a non-negative scalar or an array of shape ({len(g)},)")
     b = np.broadcast_to(b, (len(g),))[:, None, None].astype(g.dtype)
-    f = np.broadcast_to(np.maximum((g - b).mean(axis=(1, 2), keepdims=True), EPS), g.shape).astype(g.dtype)
+    if initial is None:
+        f = np.broadcast_to(np.maximum((g - b).mean(axis=(1, 2), keepdims=True), EPS), g.shape).astype(g.dtype)
+    else:
+        f = checks.finite("initial", initial)
+        if f.shape != g.shape or np.any(f <= 0):
+            raise ValueError(f"initial must be a positive array of shape {g.shape}")
+        f = f.astype(g.dtype)
     if not isinstance(circular, bool):
         raise ValueError(f"circular must be True or False, got {circular!r}")
     conv = _SameConvolver(g.shape[1:], h, circular)
-    for _ in range(n_iter):
+    for k in range(1, n_iter + 1):
         f = f * np.maximum(conv.correlate(g / (conv.convolve(f) + b + EPS)), 0.0)
+        if callback is not None and callback(k, f):
+            break
     return f
 
 
@@ -341,51 +351,53 @@ def curvature_energy(f: np.ndarray) -> float:
 
 def noise_sigma(image: np.ndarray) -> float:
     """Robust pixel noise (same units as ``image``): MAD of horizontal neighbour differences / (0.6745 sqrt 2)."""
-    diff = np.diff(np.asarray(image, dtype=np.float64), axis=1).ravel()
+    diff = np.diff(np.asarray(image, dtype=np.float64), axis=-1).ravel()
     return float(np.median(np.abs(diff - np.median(diff))) / (0.6745 * math.sqrt(2.0)))
 
 
 def curvature_filter(image: np.ndarray, threshold: float | None = None, iterations: int = 3,
                      alpha: float = 1.0, threshold_sigma: float = 3.0) -> np.ndarray:
-    """Seed 001's improved Gaussian-curvature filter (module docstring): float64 (H, W) from a 2-D image.
+    """Seed 001's improved Gaussian-curvature filter (module docstring): float64 (..., H, W) from an image or a stack
+    of images (each filtered alone, edges replicated).
 
-    ``threshold``: the energy gate T in the image's units (None: ``threshold_sigma`` times the image's noise
-    sigma); ``iterations``: passes over the image; ``alpha``: exponent of the edge-preserving potential, 1 to 2.
+    ``threshold``: the energy gate T in the image's units (None: ``threshold_sigma`` times the noise sigma of the
+    image, of the whole stack for a stack); ``iterations``: passes over the image; ``alpha``: exponent of the
+    edge-preserving potential, 1 to 2.
     """
-    f = checks.finite("image", image).astype(np.float64, copy=True)
-    if f.ndim != 2 or min(f.shape) < 3:
-        raise ValueError(f"image must be a 2-D array of at least 3 x 3 pixels, got shape {f.shape}")
+    image = checks.finite("image", image)
+    if image.ndim < 2 or min(image.shape[-2:]) < 3:
+        raise ValueError(f"image must be a 2-D array (or a stack of them) of at least 3 x 3 pixels, got shape "
+                         f"{image.shape}")
+    f = image.astype(np.float64).reshape(-1, *image.shape[-2:])
     iterations = checks.integer("iterations", iterations, 0, 1000)
     alpha = checks.in_range("alpha", alpha, 1.0, 2.0)
     if threshold is None:
         t = checks.non_negative("threshold_sigma", threshold_sigma) * noise_sigma(f)
     else:
         t = checks.non_negative("threshold", threshold)
-    h, w = f.shape
+    h, w = f.shape[-2:]
     window = np.arange(-2, 3)
     for _ in range(iterations):
         for oy in range(3):
             for ox in range(3):
                 grid = (len(range(oy, h, 3)), len(range(ox, w, 3)))
-                padded = np.pad(f, 2, mode="edge")
-                nb = _views(padded, 2, grid, (oy, ox), 3)
+                nb = _views(np.pad(f, ((0, 0), (2, 2), (2, 2)), mode="edge"), 2, grid, (oy, ox), 3)
                 step = _step(nb)
-                gy, gx = np.nonzero((_energy(nb, step, alpha) >= t) & (step != 0.0))
+                gb, gy, gx = np.nonzero((_energy(nb, step, alpha) >= t) & (step != 0.0))
                 if len(gy) == 0:
                     continue
-                s = step[gy, gx]
+                s = step[gb, gy, gx]
                 y, x = oy + 3 * gy, ox + 3 * gx
-                trial = f.copy()
-                trial[y, x] += s
-                # sum |d_m| over each candidate's 3 x 3 window before and after: 5 x 5 patches of the padded
-                # images (no other pixel of the subset lies within 2 px, replicated borders included).
-                rows = (y[:, None] + window + 2)[:, :, None]
-                cols = (x[:, None] + window + 2)[:, None, :]
-                before = padded[rows, cols]
-                after = np.pad(trial, 2, mode="edge")[rows, cols]
+                # sum |d_m| over each candidate's 3 x 3 window before and after the update, from its 5 x 5
+                # neighbourhood (edges replicated: a border pixel's copies change with it); no other pixel of the
+                # subset lies within 2 px.
+                rows = np.clip(y[:, None] + window, 0, h - 1)[:, :, None]
+                cols = np.clip(x[:, None] + window, 0, w - 1)[:, None, :]
+                before = f[gb[:, None, None], rows, cols]
+                after = before + s[:, None, None] * ((rows == y[:, None, None]) & (cols == x[:, None, None]))
                 inside = (((y[:, None] + window[1:-1]) % h == y[:, None] + window[1:-1])[:, :, None]
                           & ((x[:, None] + window[1:-1]) % w == x[:, None] + window[1:-1])[:, None, :])
                 change = [(np.abs(_step(_views(p, 1, (3, 3)))) * inside).sum(axis=(1, 2)) for p in (before, after)]
                 keep = change[1] <= change[0]
-                f[y[keep], x[keep]] = trial[y[keep], x[keep]]
-    return f
+                f[gb[keep], y[keep], x[keep]] += s[keep]
+    return f.reshape(image.shape)

@@ -45,10 +45,18 @@ import cv2
 import numpy as np
 
 from starenv import checks
-from starenv.agents.restore.algorithms import curvature_filter, noise_sigma, resharpen, richardson_lucy
-from starenv.agents.restore.kernels import centre_kernel, sigma_for, spot_sigma
+from starenv.agents.restore.algorithms import (
+    curvature_filter,
+    noise_sigma,
+    resharpen,
+    richardson_lucy,
+    richardson_lucy_batch,
+)
+from starenv.agents.restore.kernels import centre_kernel, frame_streaks, sigma_for, spot_sigma
+from starenv.agents.restore.patches import restore_streaks
 
 CENTROID_FLOOR = 0.2  # watched centroids weigh each pixel above 20 % of its window's peak (RL noise stays out)
+REGIONS = ("frame", "streaks")
 
 
 def window_centroids(image: np.ndarray, boxes: np.ndarray, floor_fraction: float = 0.0) -> np.ndarray:
@@ -70,15 +78,27 @@ def window_centroids(image: np.ndarray, boxes: np.ndarray, floor_fraction: float
     return out
 
 
+def patch_centroids(stack: np.ndarray, floor_fraction: float = 0.0) -> np.ndarray:
+    """:func:`window_centroids` with each image of a stack (b, h, w) as one window: (b, 2) px in patch pixels."""
+    p = np.asarray(stack, dtype=np.float64)
+    p = np.maximum(p - floor_fraction * p.max(axis=(1, 2), keepdims=True), 0.0)
+    total = p.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x = p.sum(axis=1) @ np.arange(p.shape[2]) / total
+        y = p.sum(axis=2) @ np.arange(p.shape[1]) / total
+    return np.where((total > 0)[:, None], np.stack([x, y], axis=1), np.nan)
+
+
 class CentroidStop:
     """Seed 001's Eq. 25 as a Richardson-Lucy callback: ``stop(iteration, estimate)`` is True once, for every
     tracked star and both axes, ``| |c_{k+1} - c_k| - |c_k - c_{k-1}| | <= eps`` (``eps`` (2,) px, x then y), or
-    when ``max_iterations`` is reached.  Centroids: :func:`window_centroids` in ``boxes`` with ``floor_fraction``.
+    when ``max_iterations`` is reached.  Centroids: :func:`window_centroids` in ``boxes`` with ``floor_fraction``;
+    ``boxes=None``: the estimate is a stack of patches, each one window (:func:`patch_centroids`).
     ``history`` keeps each iterate's centroids, ``iterations`` the last iteration seen, ``converged`` whether the
     rule (not the cap) stopped it."""
 
-    def __init__(self, boxes: np.ndarray, eps_px, max_iterations: int, floor_fraction: float = 0.0):
-        self.boxes = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+    def __init__(self, boxes: np.ndarray | None, eps_px, max_iterations: int, floor_fraction: float = 0.0):
+        self.boxes = None if boxes is None else np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
         self.eps = checks.finite("eps_px", eps_px, shape=(2,))
         if np.any(self.eps < 0):
             raise ValueError(f"eps_px must be non-negative, got {self.eps}")
@@ -90,8 +110,11 @@ class CentroidStop:
 
     def __call__(self, iteration: int, estimate: np.ndarray) -> bool:
         self.iterations = iteration
-        self.history.append(window_centroids(estimate, self.boxes, self.floor_fraction))
-        if len(self.history) >= 3 and len(self.boxes):
+        if self.boxes is None:
+            self.history.append(patch_centroids(estimate, self.floor_fraction))
+        else:
+            self.history.append(window_centroids(estimate, self.boxes, self.floor_fraction))
+        if len(self.history) >= 3 and self.history[-1].size:
             c0, c1, c2 = self.history[-3:]
             change = np.abs(np.abs(c2 - c1) - np.abs(c1 - c0))
             self.converged = bool(np.all(change <= self.eps))  # NaN (an emptied window) never converges
@@ -114,13 +137,18 @@ class CurvatureRLDeblurrer:
     (:func:`starenv.agents.restore.frame.resharpen` of that estimate): the output keeps the raw frame's noise, which the
     detector models, instead of RL's amplified noise, so the detector's
     precision holds (float64 DN).  Both set ``last_info``.
+
+    ``region="streaks"`` (real time; :meth:`deblur` only): the same denoising, RL and stopping rule on a patch around
+    each candidate streak (:func:`~starenv.agents.restore.patches.restore_streaks`, candidates at ``detect_sigma``),
+    each with its own space-variant kernel, all patches in one batch; the ``max_stars`` strongest candidates are
+    watched, each patch one centroid window.  The rest of the frame is left as observed.
     """
 
     def __init__(self, threshold: float | None = None, threshold_sigma: float = 3.0, denoise_iterations: int = 3,
                  alpha: float = 1.0,
                  max_iterations: int = 50, eps_min_px: float = 0.002, eps_per_px: float = 0.0005,
                  kernel_sigma_px: float = 0.5, detect_sigma: float = 5.0, max_stars: int = 20,
-                 psf_sigma_px: float | None = None):
+                 psf_sigma_px: float | None = None, region: str = "frame"):
         self.threshold = None if threshold is None else checks.non_negative("threshold", threshold)
         self.threshold_sigma = checks.non_negative("threshold_sigma", threshold_sigma)
         self.denoise_iterations = checks.integer("denoise_iterations", denoise_iterations, 0, 100)
@@ -132,6 +160,7 @@ class CurvatureRLDeblurrer:
         self.detect_sigma = checks.positive("detect_sigma", detect_sigma)
         self.max_stars = checks.integer("max_stars", max_stars, 1, 10000)
         self.psf_sigma_px = spot_sigma(psf_sigma_px)
+        self.region = checks.choice("region", region, REGIONS)
         self.last_info: dict = {}
 
     def watched_stars(self, image: np.ndarray, level: float, sigma: float, kernel: np.ndarray) -> np.ndarray:
@@ -173,6 +202,29 @@ class CurvatureRLDeblurrer:
 
     def deblur(self, image: np.ndarray, head: int, step) -> np.ndarray:
         """The raw frame with each trail replaced by its still star (class docstring), float64 DN."""
+        if self.region == "streaks":
+            return self._deblur_streaks(image, head, step)
         restored, kernel = self.restore(image, head, step)
         sigma = sigma_for(self.psf_sigma_px, step.cameras[head])
         return resharpen(np.asarray(image, dtype=np.float64), restored, kernel, sigma)
+
+    def _deblur_streaks(self, image: np.ndarray, head: int, step) -> np.ndarray:
+        t_start = time.perf_counter()
+        found = frame_streaks(image, head, step, self.psf_sigma_px, self.detect_sigma, 4)
+        t = self.threshold_sigma * noise_sigma(found.data[::4]) if self.threshold is None else self.threshold
+        _, extent = centre_kernel(step, head, self.kernel_sigma_px)
+        stop = CentroidStop(None, np.maximum(self.eps_min_px, self.eps_per_px * extent), self.max_iterations,
+                            CENTROID_FLOOR)
+
+        def deconvolve(patches, psfs, level, members):
+            denoised = curvature_filter(patches, t, self.denoise_iterations, self.alpha).astype(np.float32)
+            watch = np.argsort(-found.responses[members], kind="stable")[: self.max_stars]
+            return richardson_lucy_batch(np.maximum(denoised, 0.0), psfs, self.max_iterations, background=level,
+                                         circular=True, callback=lambda k, f: stop(k, f[watch]))
+
+        out, info = restore_streaks(found, step, head, deconvolve, kernel_sigma_px=self.kernel_sigma_px,
+                                    one_batch=True)
+        self.last_info = {"iterations": stop.iterations, "converged": stop.converged,
+                          "stars_watched": min(info["candidates"] - info["skipped"], self.max_stars),
+                          "denoise_threshold": t, **info, "total_s": time.perf_counter() - t_start}
+        return out

@@ -286,8 +286,8 @@ def centre_kernel(step, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndar
 class FrameStreaks:
     """One head's frame ready for restoration: the checked frame ``data`` (DN), the spot ``sigma`` (px), the robust
     background ``level`` and ``noise`` (DN), and the candidate streaks of
-    :func:`~starenv.agents.restore.algorithms.streak_candidates` (``centroids`` and ``peaks`` (k, 2) px) found with the
-    frame centre's kernel."""
+    :func:`~starenv.agents.restore.algorithms.streak_candidates` (``centroids`` and ``peaks`` (k, 2) px, peak
+    ``responses`` (k,) in noise sigmas) found with the frame centre's kernel."""
 
     data: np.ndarray
     sigma: float
@@ -295,6 +295,7 @@ class FrameStreaks:
     noise: float
     centroids: np.ndarray
     peaks: np.ndarray
+    responses: np.ndarray
 
 
 def frame_streaks(image, head: int, step: StepInput, psf_sigma_option: float | None, threshold_sigma: float,
@@ -306,5 +307,5 @@ def frame_streaks(image, head: int, step: StepInput, psf_sigma_option: float | N
     sigma = sigma_for(psf_sigma_option, cam)
     level, noise = robust_background(data)
     streak, _ = frame_kernel(step, head, sigma)
-    centroids, peaks, _ = streak_candidates(data, level, noise, streak, threshold_sigma, min_area_px)
-    return FrameStreaks(data, sigma, level, noise, centroids, peaks)
+    centroids, peaks, responses = streak_candidates(data, level, noise, streak, threshold_sigma, min_area_px)
+    return FrameStreaks(data, sigma, level, noise, centroids, peaks, responses)

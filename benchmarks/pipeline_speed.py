@@ -17,6 +17,7 @@ compare between runs.  Each scenario's line gives its frame rate's period beside
 frame ("fits": p95 within the period).
 
 ``--profile`` ends with a cProfile of passes of seed 002 at the fastest rate (cumulative time, top ``--top``).
+Run time with the defaults: about 30 s (most of it rendering).
 
     python benchmarks/pipeline_speed.py [--frames N] [--repeats N] [--others paper_000,...] [--profile] [--top N]
 """

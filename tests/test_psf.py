@@ -10,7 +10,14 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import starenv  # noqa: F401  (registers the environments)
-from starenv.agents.restore.kernels import boresight_blur, cross_boresight_blur, gyro_rotation, path_kernel, star_paths
+from starenv.agents.restore.kernels import (
+    boresight_blur,
+    cross_boresight_blur,
+    gyro_rotation,
+    path_kernel,
+    path_kernels,
+    star_paths,
+)
 from starenv.sim.gyro import GyroSamples
 
 NOISE_FREE_GYRO = {"gyro.arw_deg_rthr": 0.0, "gyro.rrw_deg_hr_rthr": 0.0, "gyro.bias_instability_deg_hr": 0.0}
@@ -196,3 +203,19 @@ def test_linear_blur_kernel_is_the_uniform_line_psf():
     var_y = (kernel * (yy - my) ** 2).sum()
     assert var_y == pytest.approx((length / m) ** 2 * (m * m - 1) / 12.0 + 1.0 + 1 / 12, rel=1e-5)
     assert blur.angle[0] == pytest.approx(-math.pi / 2, abs=1e-12)  # roll about +Z moves a star on +u towards -v
+
+
+def test_path_kernels_of_many_paths_are_each_path_kernel():
+    # One scatter for all paths (the region-of-interest restorers' kernels) must give each path's own kernel, bit for
+    # bit, whatever the paths' lengths and directions.
+    rng = np.random.default_rng(3)
+    steps = rng.normal(0.0, 0.6, (5, 41, 2)) + rng.normal(0.0, 1.0, (5, 1, 2))
+    paths = np.cumsum(steps, axis=1) + rng.uniform(20.0, 80.0, (5, 1, 2))
+    kernels, origins = path_kernels(paths, 0.9)
+    for path, kernel, origin in zip(paths, kernels, origins, strict=True):
+        one, one_origin = path_kernel(path, 0.9)
+        np.testing.assert_array_equal(kernel, one)
+        np.testing.assert_array_equal(origin, one_origin)
+    assert len({k.shape for k in kernels}) > 1
+    with pytest.raises(ValueError, match="paths must be an"):
+        path_kernels(paths[0], 0.9)

@@ -223,25 +223,33 @@ def path_kernel(path, sigma_px: float, xy_mid=None) -> tuple[np.ndarray, np.ndar
     p = checks.finite("path", path)
     if p.ndim != 2 or p.shape[1] != 2 or len(p) == 0:
         raise ValueError(f"path must be an (m, 2) array of pixel positions with m >= 1, got shape {p.shape}")
+    mid = None if xy_mid is None else checks.finite("xy_mid", xy_mid, shape=(2,))[None]
+    kernels, origins = path_kernels(p[None], sigma_px, mid)
+    return kernels[0], origins[0]
+
+
+def path_kernels(paths, sigma_px: float, xy_mid=None) -> tuple[list[np.ndarray], np.ndarray]:
+    """:func:`path_kernel` of each of ``n`` paths (n, m, 2) px at once (``xy_mid`` (n, 2) or None): the kernels (a
+    list, each its own odd size) and their origins (n, 2)."""
+    p = checks.finite("paths", paths)
+    if p.ndim != 3 or p.shape[2] != 2 or p.shape[1] == 0:
+        raise ValueError(f"paths must be an (n, m, 2) array of pixel positions with m >= 1, got shape {p.shape}")
     sigma = checks.in_range("sigma_px", sigma_px, 0.1, 20.0, unit="px")
-    mid = p[len(p) // 2] if xy_mid is None else checks.finite("xy_mid", xy_mid, shape=(2,))
-    rel = p - mid  # path relative to the mid-exposure position
-    band, frac = band_fractions(rel, sigma)  # (m, 2), (m, 2, n_band)
+    n, m = p.shape[:2]
+    mid = p[:, m // 2] if xy_mid is None else checks.finite("xy_mid", xy_mid, shape=(n, 2))
+    band, frac = band_fractions(p - mid[:, None], sigma)  # (n, m, 2), (n, m, 2, n_band), relative to mid-exposure
     n_band = frac.shape[-1]
-    lo = band.min(axis=0)
-    hi = band.max(axis=0) + n_band - 1
-    half = np.maximum(-lo, hi)  # the kernel spans [-half, half] around the mid pixel (0, 0)
-    w, h = 2 * half + 1
-    m = len(p)
-    wx = np.zeros((m, w))
-    wy = np.zeros((m, h))
-    cols = np.arange(n_band)
-    rows_k = np.arange(m)[:, None]
-    wx[rows_k, band[:, 0, None] + half[0] + cols] = frac[:, 0]
-    wy[rows_k, band[:, 1, None] + half[1] + cols] = frac[:, 1]
-    kernel = np.einsum("ki,kj->ij", wy, wx)  # (not BLAS: small products are slow through threaded OpenBLAS)
-    kernel /= kernel.sum()
-    return kernel, half.astype(np.int64)
+    half = np.maximum(-band.min(axis=1), band.max(axis=1) + n_band - 1)  # (n, 2): each spans [-half, half]
+    w, h = (2 * half + 1).T
+    start = np.concatenate([[0], np.cumsum(w * h)])  # each kernel's place in one flat buffer
+    span = np.arange(n_band)
+    rows = band[..., 1, None] + half[:, None, 1, None] + span  # (n, m, n_band) rows and columns in each kernel
+    cols = band[..., 0, None] + half[:, None, 0, None] + span
+    flat = start[:-1, None, None, None] + rows[..., :, None] * w[:, None, None, None] + cols[..., None, :]
+    values = frac[..., 1, :, None] * frac[..., 0, None, :]  # (n, m, rows, cols)
+    buffer = np.bincount(flat.ravel(), values.ravel(), minlength=start[-1])
+    kernels = [buffer[a:b].reshape(hh, ww) for a, b, hh, ww in zip(start[:-1], start[1:], h, w, strict=True)]
+    return [k / k.sum() for k in kernels], half.astype(np.int64)
 
 
 def spot_sigma(option: float | None) -> float | None:

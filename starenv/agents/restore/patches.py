@@ -23,7 +23,7 @@ import numpy as np
 
 from starenv.agents.base import StepInput
 from starenv.agents.restore.algorithms import convolve_batch
-from starenv.agents.restore.kernels import FrameStreaks, path_kernel, star_paths, window
+from starenv.agents.restore.kernels import FrameStreaks, path_kernels, star_paths, window
 
 PATCH_STEP_PX = 8  # patch sizes are rounded up to multiples of this, one batch per size
 
@@ -46,7 +46,7 @@ def restore_streaks(found: FrameStreaks, step: StepInput, head: int, deconvolve:
     if len(centres) == 0:
         return out, info
     t0, t1 = window(step)
-    kernels = [path_kernel(p, kernel_sigma_px)[0] for p in star_paths(cam, step.gyro, t0, t1, centres)]
+    kernels, _ = path_kernels(star_paths(cam, step.gyro, t0, t1, centres), kernel_sigma_px)
     half = np.array([[k.shape[1] // 2, k.shape[0] // 2] for k in kernels])  # (k, 2) x, y
     mid = np.rint(centres).astype(np.int64)
     lo = np.maximum(mid - half, 0)

@@ -142,8 +142,10 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
     Returns ``centre (C, 2) px, flux (C,) DN, background (C,) DN, covariance (C, 4, 4) of (c_x, c_y, F, b),
     converged (C,)``; the covariance is ``noise**2 (J^T J)^-1`` at the solution.  Positive outliers (``outlier_sigma``
     noise sigmas above the first fit) are dropped and those fits repeated once.  A start whose linear flux estimate
-    is below half of ``min_snr`` of its own sigma is not iterated (not converged): noise candidates cost no time."""
-    c = np.array(starts, dtype=np.float64).reshape(-1, 2)
+    is below half of ``min_snr`` of its own sigma is not iterated, and a fit stops (not converged) once its flux falls
+    under that floor or it moves twice ``SHIFT_PX`` from its start: noise candidates cost little time."""
+    starts = np.array(starts, dtype=np.float64).reshape(-1, 2)
+    c = starts.copy()
     n = len(c)
     use = np.asarray(valid, dtype=bool).copy()
     flux, level = np.zeros(n), np.zeros(n)
@@ -151,9 +153,9 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
     converged = np.zeros(n, dtype=bool)
     live = use.sum(axis=1) >= 8
     todo = live.copy()
+    t, tx, ty = trail_model(x, y, c, knots, sigma)  # the model at c, kept current through both rounds
     for rnd in range(2):
         w = use.astype(np.float64)
-        t, tx, ty = trail_model(x, y, c, knots, sigma)
         # linear start for (F, b) at the current position: 2 x 2 normal equations per candidate
         s1, st, stt = w.sum(1), (w * t).sum(1), (w * t * t).sum(1)
         sd, std = (w * values).sum(1), (w * t * values).sum(1)
@@ -161,9 +163,11 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
         det = np.where(det > 0, det, 1.0)
         flux = np.where(todo, (s1 * std - st * sd) / det, flux)
         level = np.where(todo, (stt * sd - st * std) / det, level)
-        if rnd == 0 and min_snr > 0:
-            todo &= flux >= 0.5 * min_snr * noise * np.sqrt(s1 / det)
-            live &= todo
+        if rnd == 0:
+            floor = 0.5 * min_snr * noise * np.sqrt(s1 / det)  # DN: half of min_snr of the linear flux sigma
+            if min_snr > 0:
+                todo &= flux >= floor
+                live &= todo
         r = (values - level[:, None] - flux[:, None] * t) * w
         done = ~todo
         for _ in range(iterations):
@@ -204,11 +208,14 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
             settled = step & ~done & np.all(np.abs(delta[:, :2]) < MAX_STEP_PX, axis=1)
             converged |= settled
             done |= settled
+            # A fit that has left its pixels (twice SHIFT_PX from its start) or whose flux fell under the floor is
+            # not a star to keep: it stops, not converged.
+            done |= step & ~settled & ((np.hypot(*(c - starts).T) > 2.0 * SHIFT_PX) | (flux <= floor))
         j = _normal(t, tx, ty, flux, w)
         cov = np.where(todo[:, None, None], noise**2 * np.linalg.pinv(j.swapaxes(1, 2) @ j), cov)
         if rnd == 1:
             break
-        resid = values - level[:, None] - flux[:, None] * trail_model(x, y, c, knots, sigma)[0]
+        resid = values - level[:, None] - flux[:, None] * t
         outliers = use & (resid > outlier_sigma * noise) & live[:, None]
         todo = outliers.any(axis=1)
         if not todo.any():

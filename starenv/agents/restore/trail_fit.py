@@ -21,10 +21,12 @@ thresholded pixels loses the faint ends first.
 Robustness.  Pixels at the ADC's full-scale code are left out of the fit (a saturated trail's core carries no
 flux information); after the first fit, pixels more than ``outlier_sigma`` noise sigmas above the model (a hot
 pixel, a cosmic ray, a neighbour's trail) are left out and the fit is repeated.  A fit is kept when it converges
-within ``SHIFT_PX`` of its start, its flux is positive with ``F / sigma_F >= min_snr`` and its mid-exposure position
-lies on the frame; the other candidates are left as observed.  The candidates are fitted side by side (one batch of
-Gauss-Newton steps for all); of two fits that land on one star (a trail found as two candidates) the brighter is
-kept.
+within ``SHIFT_PX`` of its start across the trail and ``SHIFT_PX`` plus ``ALONG_FRACTION`` of the trail's length
+along it (the matched filter places a faint trail's centre to a fraction of its length along it; the fit's pixels
+reach that far beyond the trail's ends), its flux is positive with ``F / sigma_F >= min_snr`` and its mid-exposure
+position lies on the frame; the other candidates are left as observed.  The candidates are fitted side by side
+(one batch of Gauss-Newton steps for all); of two fits that land on one star (a trail found as two candidates) the
+brighter is kept.
 
 Output.  The observed frame with each kept trail replaced by its still star: ``g - F T(c) + F S(c)``, ``S`` the
 still spot (the same model with no motion), so the residual noise stays as observed and a detector tuned to the
@@ -51,6 +53,7 @@ from starenv.agents.restore.kernels import (
 
 PSF_REACH_SIGMA = 4.0  # the fit covers pixels within this many spot sigmas (+ SHIFT_PX) of the trail
 SHIFT_PX = 2.0  # how far the fit may move a candidate from its first position before its pixels run out (px)
+ALONG_FRACTION = 0.1  # along the trail it may move SHIFT_PX + this fraction of the trail's length further
 MAX_STEP_PX = 0.01  # Gauss-Newton stops when the position moves less than this (px)
 CHORD_TOLERANCE_PX = 0.05  # a trail is drawn as chords no farther than this from its gyro path
 MAX_CHORDS = 32
@@ -134,7 +137,7 @@ def _normal(t, tx, ty, flux, w):
 
 def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarray, starts: np.ndarray,
                knots: np.ndarray, sigma: float, noise: float, iterations: int = 10, outlier_sigma: float = 5.0,
-               min_snr: float = 0.0):
+               min_snr: float = 0.0, max_shift_px=SHIFT_PX):
     """Least-squares fits of :func:`trail_model` plus a constant background, one per candidate, side by side: pixel
     ``values`` (C, n) DN at (x, y) (C, n) px, of which the ``valid`` ones (C, n) count, starting from ``starts``
     (C, 2) px, each along its ``knots`` (C, K + 1, 2).
@@ -143,10 +146,12 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
     converged (C,)``; the covariance is ``noise**2 (J^T J)^-1`` at the solution.  Positive outliers (``outlier_sigma``
     noise sigmas above the first fit) are dropped and those fits repeated once.  A start whose linear flux estimate
     is below half of ``min_snr`` of its own sigma is not iterated, and a fit stops (not converged) once its flux falls
-    under that floor or it moves twice ``SHIFT_PX`` from its start: noise candidates cost little time."""
+    under that floor or it moves ``SHIFT_PX`` beyond ``max_shift_px`` (scalar or (C,) px) from its start: noise
+    candidates cost little time."""
     starts = np.array(starts, dtype=np.float64).reshape(-1, 2)
     c = starts.copy()
     n = len(c)
+    max_shift = np.broadcast_to(np.asarray(max_shift_px, dtype=np.float64), (n,))
     use = np.asarray(valid, dtype=bool).copy()
     flux, level = np.zeros(n), np.zeros(n)
     cov = np.full((n, 4, 4), np.nan)
@@ -208,9 +213,9 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
             settled = step & ~done & np.all(np.abs(delta[:, :2]) < MAX_STEP_PX, axis=1)
             converged |= settled
             done |= settled
-            # A fit that has left its pixels (twice SHIFT_PX from its start) or whose flux fell under the floor is
-            # not a star to keep: it stops, not converged.
-            done |= step & ~settled & ((np.hypot(*(c - starts).T) > 2.0 * SHIFT_PX) | (flux <= floor))
+            # A fit that has left its pixels or whose flux fell under the floor is not a star to keep: it stops,
+            # not converged.
+            done |= step & ~settled & ((np.hypot(*(c - starts).T) > max_shift + SHIFT_PX) | (flux <= floor))
         j = _normal(t, tx, ty, flux, w)
         cov = np.where(todo[:, None, None], noise**2 * np.linalg.pinv(j.swapaxes(1, 2) @ j), cov)
         if rnd == 1:
@@ -292,37 +297,50 @@ class TrailFitDeblurrer:
         centres = np.where((length <= 1.25 * centre_length + 2.0)[:, None], peaks, centres)
         reach = PSF_REACH_SIGMA * sigma + SHIFT_PX
         height, width = data.shape
-        cands = []  # (index, knots, rows, cols) of each candidate with enough pixels
+        cands = []  # (index, knots, rows, cols, along (2,) unit vector, along slack px) of each with enough pixels
         for i in np.flatnonzero(length >= self.min_trail_px):
             knots = chords(paths[i] - paths[i, mid])
-            lo = np.floor(centres[i] + knots.min(axis=0) - reach).astype(np.int64)
-            hi = np.ceil(centres[i] + knots.max(axis=0) + reach).astype(np.int64)
+            # The filter locates a trail's centre well across it, to a fraction of its length along it: the pixels
+            # reach ALONG_FRACTION of the length beyond each end, so a fit started off-centre along the trail finds
+            # its ends.
+            chord = knots[-1] - knots[0]
+            along = chord / max(float(np.hypot(*chord)), 1e-9)
+            slack = ALONG_FRACTION * float(length[i])
+            ends = np.vstack([knots[0] - slack * along, knots, knots[-1] + slack * along])
+            lo = np.floor(centres[i] + ends.min(axis=0) - reach).astype(np.int64)
+            hi = np.ceil(centres[i] + ends.max(axis=0) + reach).astype(np.int64)
             if np.any(hi - lo + 1 > self.max_box_px):
                 continue
             lo = np.maximum(lo, 0)
             hi = np.minimum(hi, [width - 1, height - 1])
             yy, xx = np.mgrid[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
-            keep = near_path(xx.ravel().astype(np.float64), yy.ravel().astype(np.float64), centres[i] + knots, reach)
+            keep = near_path(xx.ravel().astype(np.float64), yy.ravel().astype(np.float64), centres[i] + ends, reach)
             keep &= data[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1].ravel() < full_scale
             if keep.sum() >= 8:
-                cands.append((i, knots, yy.ravel()[keep], xx.ravel()[keep]))
+                cands.append((i, knots, yy.ravel()[keep], xx.ravel()[keep], along, slack))
         fits = []  # (flux, index, centre, knots, rows, cols, position sigma) of the fits kept
-        for n_knots in sorted({len(k) for _, k, _, _ in cands}):  # one batch per chord count
+        for n_knots in sorted({len(cd[1]) for cd in cands}):  # one batch per chord count
             group = [cd for cd in cands if len(cd[1]) == n_knots]
             size = max(len(cd[2]) for cd in group)
             rows = np.zeros((len(group), size), dtype=np.int64)
             cols = np.zeros((len(group), size), dtype=np.int64)
             valid = np.zeros((len(group), size), dtype=bool)
-            for g, (_, _, r, cl) in enumerate(group):
+            for g, (_, _, r, cl, _, _) in enumerate(group):
                 rows[g, : len(r)], cols[g, : len(r)], valid[g, : len(r)] = r, cl, True
             idx = np.array([cd[0] for cd in group])
             knots = np.stack([cd[1] for cd in group])
+            along = np.stack([cd[4] for cd in group])
+            slack = np.array([cd[5] for cd in group])
             c, flux, _, cov, ok = fit_trails(data[rows, cols], cols.astype(np.float64), rows.astype(np.float64),
                                              valid, centres[idx], knots, sigma, noise,
-                                             outlier_sigma=self.outlier_sigma, min_snr=self.min_snr)
+                                             outlier_sigma=self.outlier_sigma, min_snr=self.min_snr,
+                                             max_shift_px=SHIFT_PX + slack)
             sigma_f = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
             good = ok & (flux > 0) & (flux >= self.min_snr * sigma_f)
-            good &= np.hypot(*(c - centres[idx]).T) <= SHIFT_PX
+            shift = c - centres[idx]
+            shift_along = np.einsum("ij,ij->i", shift, along)
+            shift_across = np.abs(shift[:, 1] * along[:, 0] - shift[:, 0] * along[:, 1])
+            good &= (shift_across <= SHIFT_PX) & (np.abs(shift_along) <= SHIFT_PX + slack)
             good &= (c[:, 0] >= 0) & (c[:, 0] <= width - 1) & (c[:, 1] >= 0) & (c[:, 1] <= height - 1)
             for g in np.flatnonzero(good):
                 fits.append((flux[g], idx[g], c[g], knots[g], group[g][2], group[g][3],

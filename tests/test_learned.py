@@ -1,5 +1,6 @@
 """Seed 002's network (shapes, parameter count) and the training harness (toy task, determinism, resume)."""
 
+import hashlib
 import json
 
 import numpy as np
@@ -88,6 +89,9 @@ def test_toy_task_trains_to_high_accuracy_deterministically(toy):
     b = torch.load(toy / "b" / "weights.pt", weights_only=True)
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert manifest["dataset"]["spec_digest"] == "toy" and manifest["classes_hip"] == [1, 2, 3, 4]
+    # the samples' own digest: the shard's bytes, independently hashed
+    shard = (toy / "train" / "shard-00000.npz").read_bytes()
+    assert manifest["dataset"]["content_digest"] == hashlib.sha256(shard).hexdigest()
 
 
 def test_resume_replays_the_interrupted_run(toy):

@@ -7,6 +7,7 @@ shard by shard.  The order of epoch ``e`` depends only on (seed, e), so a resume
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections import OrderedDict
 from pathlib import Path
@@ -40,6 +41,14 @@ class ShardDataset(Dataset):
     @property
     def spec_digest(self) -> str:
         return self.info["spec_digest"]
+
+    def content_digest(self) -> str:
+        """SHA-256 of the shards' bytes, in order: the exact samples.  The spec digest names the recipe only; the
+        simulator's code decides the pixels, so two builds of one spec by different versions can differ."""
+        digest = hashlib.sha256()
+        for i in range(self.n_shards):
+            digest.update(self._path(i).read_bytes())
+        return digest.hexdigest()
 
     def _path(self, shard: int) -> Path:
         return self.folder / f"shard-{shard:05d}.npz"

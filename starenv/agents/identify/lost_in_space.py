@@ -75,15 +75,13 @@ from starenv.agents.identify.geometry import (
     MERGE_PX,
     ORDER_EDGES,
     STAR_ORDERS,
-    body_vectors,
     chord,
-    closest_per_star,
     resolvable,
     same_matches,
     with_ids,
 )
 from starenv.agents.solve import wahba_svd
-from starenv.sim.optics import Camera
+from starenv.sim.optics import Camera, NoDistortion
 from starenv.sim.sky import StarCatalog
 
 _SAME_ATTITUDE_TRACE = 1e-6  # 3 - trace(A B^T) below this (under 1 mrad apart): the same attitude
@@ -105,17 +103,69 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
     return steps
 
 
+def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
+    """The attitude (3, 3), inertial -> body, minimising sum |b - A r|^2 over pairs of unit vectors (n, 3): the SVD
+    solution of Wahba's problem as :func:`~starenv.agents.solve.wahba_svd`, for one set of pairs."""
+    u, _, vt = np.linalg.svd(body.T @ inertial)
+    attitude = u @ vt
+    (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:  # a reflection: flip the last axis
+        u[:, 2] = -u[:, 2]
+        attitude = u @ vt
+    return attitude
+
+
+def _closest_per_star(rows: np.ndarray, star: np.ndarray, dot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~starenv.agents.identify.geometry.closest_per_star` with closeness as the dot product ``dot[row]`` of
+    unit vectors (the largest is the closest)."""
+    stars = star[rows]
+    if len(set(stars.tolist())) < len(stars):
+        order = np.argsort(-dot[rows], kind="stable")
+        _, first = np.unique(stars[order], return_index=True)
+        keep = np.sort(order[first])
+        rows, stars = rows[keep], stars[keep]
+    return rows, stars
+
+
+class _Heads(NamedTuple):
+    """Per-head constants of a list of cameras, made once for it: the cameras, their body -> camera matrices (None:
+    the identity), (centre (2,), 1 / focal lengths (2,)) px of an undistorted head (None: one with distortion, which
+    goes through :meth:`~starenv.sim.optics.Camera.unproject`), match radii (rad) and body-frame boresights."""
+
+    cameras: tuple
+    mountings: tuple
+    pinholes: tuple
+    radius: tuple
+    axes: tuple
+
+
 class _Frame(NamedTuple):
-    """The detections of one identification: pooled body-frame unit vectors (n, 3), their match radius (rad), its
-    square and largest value, and per head with detections its boresight ``axes`` (h, 3) and the chord of a cone
-    about it that holds every database star a detection can be matched to while growing a hypothesis."""
+    """The detections of one identification: pooled body-frame unit vectors (n, 3), their squared match radius (n,),
+    the smallest dot product with a star within that radius (``cos_radius``) and within ``_GROW_MAX`` radii
+    (``cos_grow``), the largest radius; per head with detections its boresight ``axes`` (h, 3) and the chord of a cone
+    about it that holds every catalogue star a detection can be matched to while growing a hypothesis; ``area``: the
+    largest match disc as a fraction of the database field, ``reuse``: the smallest trace(A B^T) of two attitudes
+    whose cones are interchangeable (:meth:`LostInSpaceIdentifier._nearby`)."""
 
     body: np.ndarray
-    radius: np.ndarray
     radius2: np.ndarray
+    cos_radius: np.ndarray
+    cos_grow: np.ndarray
     max_radius: float
     axes: np.ndarray
-    chords: np.ndarray
+    chords: list
+    area: float
+    reuse: float
+
+
+class _Nearby(NamedTuple):
+    """The labelling stars in a frame's cones under ``attitude``: their rows (s,), ascending, so that the database
+    stars (the first ``n_db``) come first, and their inertial unit vectors (s, 3)."""
+
+    attitude: np.ndarray
+    rows: np.ndarray
+    unit: np.ndarray
+    n_db: int
 
 
 class LostInSpaceIdentifier:
@@ -150,6 +200,7 @@ class LostInSpaceIdentifier:
             for step in _breadth_first_quads(self.max_pattern_stars)
         ]
         self.database: PatternDatabase | None = None
+        self._heads: _Heads | None = None
 
     def settings_for(self, cameras: list[Camera], catalog: StarCatalog) -> DatabaseSettings:
         """Database settings for these heads: the largest head's shorter field side, its coarsest plate scale; the
@@ -171,68 +222,127 @@ class LostInSpaceIdentifier:
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
         """Load (or build and cache) the pattern database for these heads and catalogue, and index the whole
         catalogue's resolvable stars: a verified attitude labels detections from all of it, not only the (brighter)
-        pattern stars."""
+        pattern stars.  The labelling stars are held with the database's match stars first, in their order, so that
+        one cone search serves verifying (the database stars) and labelling (all)."""
         settings = self.settings_for(cameras, catalog)
-        self.database = load_database(catalog, settings)
+        self.database = db = load_database(catalog, settings)
         rows = np.flatnonzero(resolvable(catalog.unit, catalog.magnitude, settings.merge_rad))
-        self._label_tree, self._label_hip = cKDTree(catalog.unit[rows]), catalog.hip[rows]
+        in_db = np.flatnonzero(catalog.magnitude <= settings.mag_limit)[db.match_rows]
+        rows = np.concatenate([in_db, rows[~np.isin(rows, in_db)]])
+        self._label_unit, self._label_hip, self._label_db = catalog.unit[rows], catalog.hip[rows], len(in_db)
+        self._label_tree = cKDTree(self._label_unit)
         self._bins = settings.bins
         self._digits = np.int64(self._bins) ** np.arange(5, dtype=np.int64)  # key = bin numbers @ digits
         step_keys = _BIN_STEPS @ self._digits
         self._probe_keys = np.stack([step_keys, step_keys + 1])  # per bin step: its key offset and the next one
+        self._cos_half_field = math.cos(settings.fov_rad / 2.0)
+        self._heads = None
 
     def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
                  images: list[np.ndarray | None] | None = None) -> list[StarMeasurements]:
         """Label all heads' detections with HIP numbers (-1: unidentified); ``prior`` and ``images`` are not used."""
         if self.database is None:
             raise RuntimeError("call reset(cameras, catalog) before identify")
-        body, heads = body_vectors(stars, cameras)
-        ids = np.full(len(body), -1, dtype=np.int64)
-        if any(len(s) >= 4 for s in stars):
-            frame = self._frame(body, heads, stars, cameras)
-            attitude = self._solve(frame, stars)
-            if attitude is not None:
-                distance, nearest = self._label_tree.query(body @ attitude, k=2, distance_upper_bound=frame.max_radius)
-                alone = ((distance[:, 0] <= frame.radius) & (distance[:, 1] > frame.radius)).nonzero()[0]
-                labelled, stars_hit = closest_per_star(alone, nearest[:, 0], distance[:, 0])
-                ids[labelled] = self._label_hip[stars_hit]
+        if len(stars) != len(cameras):
+            raise ValueError(f"stars must hold one StarMeasurements per camera ({len(cameras)}), got {len(stars)}")
+        counts = [len(s) for s in stars]
+        ids = np.full(sum(counts), -1, dtype=np.int64)
+        if max(counts, default=0) >= 4:
+            frame = self._frame(stars, self._heads_of(cameras), counts)
+            solved = self._solve(frame, stars, counts)
+            if solved is not None:  # label: each detection with exactly one star within its radius, the closest
+                _, nearby, dots = solved
+                alone = ((dots >= frame.cos_radius[:, None]).sum(axis=1) == 1).nonzero()[0]
+                labelled, hit = _closest_per_star(alone, dots.argmax(axis=1), dots.max(axis=1))
+                ids[labelled] = self._label_hip[nearby.rows[hit]]
         return with_ids(stars, ids)
 
-    def _frame(self, body: np.ndarray, heads: np.ndarray, stars: list[StarMeasurements],
-               cameras: list[Camera]) -> _Frame:
-        """The detections of one call with their match radii and search cones (see :class:`_Frame`)."""
-        pixel_rad = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])[heads]
-        radius = self.match_radius_px * pixel_rad
-        max_radius = float(radius.max())
-        axes, chords, first = [], [], 0
-        for s, cam in zip(stars, cameras, strict=True):
-            if len(s):
-                axis = cam.mounting.as_matrix()[2]
-                reach = math.acos(min(float((body[first : first + len(s)] @ axis).min()), 1.0))
-                axes.append(axis)
-                chords.append(chord(max(reach + 2.0 * _GROW_MAX * max_radius, self.database.settings.fov_rad / 2.0)))
-            first += len(s)
-        return _Frame(body, radius, radius**2, max_radius, np.array(axes), np.array(chords))
+    def _heads_of(self, cameras: list[Camera]) -> _Heads:
+        """The per-head constants of ``cameras`` (kept for the last list of cameras seen; cameras are frozen)."""
+        heads = self._heads
+        if heads is not None and len(heads.cameras) == len(cameras) and all(
+            a is b for a, b in zip(heads.cameras, cameras, strict=True)
+        ):
+            return heads
+        mountings = [cam.mounting.as_matrix() for cam in cameras]
+        self._heads = heads = _Heads(
+            cameras=tuple(cameras),
+            mountings=tuple(None if np.array_equal(m, IDENTITY) else m for m in mountings),
+            pinholes=tuple(
+                (np.array([cam.cx, cam.cy]), np.array([1.0 / cam.fx, 1.0 / cam.fy]))
+                if type(cam.distortion) is NoDistortion
+                else None
+                for cam in cameras
+            ),
+            radius=tuple(self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras),
+            axes=tuple(m[2].copy() for m in mountings),
+        )
+        return heads
 
-    def _solve(self, frame: _Frame, stars: list[StarMeasurements]) -> np.ndarray | None:
-        """The attitude (3, 3), inertial -> body, from the verified hypothesis of the first breadth-first step that
-        has any, grown and refined (:meth:`_grow`); None if no step has one."""
+    def _frame(self, stars: list[StarMeasurements], heads: _Heads, counts: list[int]) -> _Frame:
+        """The detections of one call with their match radii and search cones (see :class:`_Frame`)."""
+        vectors = []
+        for s, cam, mounting, pinhole in zip(stars, heads.cameras, heads.mountings, heads.pinholes, strict=True):
+            xy = np.asarray(s.xy, dtype=np.float64).reshape(-1, 2)
+            if pinhole is None:
+                v = cam.unproject(xy)
+            else:  # Camera.unproject of an undistorted head
+                d = (xy - pinhole[0]) * pinhole[1]
+                scale = 1.0 / np.sqrt(1.0 + (d * d).sum(axis=1))
+                v = np.empty((len(d), 3))
+                v[:, :2] = d * scale[:, None]
+                v[:, 2] = scale
+            vectors.append(v if mounting is None else v @ mounting)
+        body = vectors[0] if len(vectors) == 1 else np.concatenate(vectors)
+        if len(counts) == 1:
+            max_radius = heads.radius[0]
+            radius2 = np.full(len(body), max_radius**2)
+        else:
+            max_radius = max(r for r, count in zip(heads.radius, counts, strict=True) if count)
+            radius2 = np.repeat(np.square(heads.radius), counts)
+        half_field = self.database.settings.fov_rad / 2.0
+        axes, chords, first = [], [], 0
+        for count, axis in zip(counts, heads.axes, strict=True):
+            if count:
+                reach = math.acos(min(float((body[first : first + count] @ axis).min()), 1.0))
+                axes.append(axis)
+                chords.append(chord(max(reach + 2.0 * _GROW_MAX * max_radius, half_field)))
+            first += count
+        return _Frame(
+            body=body,
+            radius2=radius2,
+            cos_radius=1.0 - 0.5 * radius2,
+            cos_grow=1.0 - (0.5 * _GROW_MAX**2) * radius2,
+            max_radius=max_radius,
+            axes=np.array(axes),
+            chords=chords,
+            area=max_radius**2 / (2.0 * (1.0 - math.cos(half_field))),
+            reuse=1.0 + 2.0 * math.cos(_GROW_MAX * max_radius),
+        )
+
+    def _solve(self, frame: _Frame, stars: list[StarMeasurements], counts: list[int]) -> tuple | None:
+        """(attitude (3, 3) inertial -> body, the stars about it (:class:`_Nearby`), the dot products (n, s) of the
+        detections with them) from the verified hypothesis of the first breadth-first step that has any, grown and
+        refined (:meth:`_grow`); None if no step has one."""
         heads, first = [], 0
-        for s in stars:  # per head, pooled rows of its brightest detections (brightest first) and their angles
-            rows = first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
-            vectors = frame.body[rows]
-            heads.append((rows, np.arccos(np.minimum(vectors @ vectors.T, 1.0))))
-            first += len(s)
+        for s, count in zip(stars, counts, strict=True):  # per head, pooled rows of its brightest detections
+            if count >= 4:  # (brightest first) and their angles
+                rows = first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
+                vectors = frame.body[rows]
+                heads.append((rows, np.arccos(np.minimum(vectors @ vectors.T, 1.0))))
+            first += count
         for step, (edge_from, edge_to), last in self._quad_steps:
             quads, edges = [], []
             for rows, angles in heads:
                 count = bisect.bisect_left(last, len(rows))  # the quads within this head's stars
-                quads.append(rows[step[:count]])
-                edges.append(angles[edge_from[:count], edge_to[:count]])
-            quads, edges = np.concatenate(quads), np.concatenate(edges)
-            if len(quads) == 0:
+                if count:
+                    quads.append(rows[step[:count]])
+                    edges.append(angles[edge_from[:count], edge_to[:count]])
+            if not quads:
                 return None
-            hypothesis = self._best_hypothesis(frame, quads, edges)
+            if len(quads) > 1:
+                quads, edges = [np.concatenate(quads)], [np.concatenate(edges)]
+            hypothesis = self._best_hypothesis(frame, quads[0], edges[0])
             if hypothesis is not None:
                 return self._grow(frame, *hypothesis)
         return None
@@ -269,8 +379,8 @@ class LostInSpaceIdentifier:
 
     def _best_hypothesis(self, frame: _Frame, quads: np.ndarray, edges: np.ndarray) -> tuple | None:
         """The verified hypothesis matching most detections among those of the quads (pooled rows (q, 4)) of edges
-        ``edges`` (q, 6), or None; a hypothesis is (attitude (3, 3), the database stars about it (:meth:`_nearby`),
-        its matched detections and their match rows)."""
+        ``edges`` (q, 6), or None; a hypothesis is (attitude (3, 3), the stars about it (:meth:`_nearby`), its matched
+        detections and their labelling rows)."""
         db = self.database
         quad_of, catalog_rows = self._candidates(edges)
         if len(quad_of) == 0:
@@ -279,81 +389,86 @@ class LostInSpaceIdentifier:
         pattern_body, catalog = frame.body[detections], db.unit[catalog_rows]
         attitudes = wahba_svd(pattern_body, catalog)
         miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
-        half_field = db.settings.fov_rad / 2.0
-        area = math.pi * frame.max_radius**2 / (2.0 * math.pi * (1.0 - math.cos(half_field)))
         best, best_count = None, 0
         for attitude in attitudes[(miss <= frame.radius2[detections]).all(axis=1)]:
             if best is not None and np.vdot(attitude, best[0]) > 3.0 - _SAME_ATTITUDE_TRACE:
                 continue  # the same solution from another pattern
             nearby = self._nearby(frame, attitude)
-            star, squared = self._closest(frame, attitude, nearby)
-            matched, rows = closest_per_star((squared <= frame.radius2).nonzero()[0], star, squared)
+            _, star, dot = self._closest(frame, attitude, nearby)
+            matched, rows = _closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, dot)
             m = len(matched)
-            if m <= best_count:
+            if m <= best_count or m < 3:
                 continue
-            in_field = ((nearby[2] @ (frame.axes @ attitude).T) >= math.cos(half_field)).sum(axis=0).max()
-            if m >= 3 and bdtrc(m - 3, len(frame.body), min(in_field * area, 1.0)) < self.match_threshold:
+            in_field = ((nearby.unit[: nearby.n_db] @ (frame.axes @ attitude).T) >= self._cos_half_field).sum(axis=0)
+            if bdtrc(m - 3, len(frame.body), min(in_field.max() * frame.area, 1.0)) < self.match_threshold:
                 best, best_count = (attitude, nearby, matched, rows), m
         return best
 
-    def _grow(
-        self, frame: _Frame, attitude: np.ndarray, nearby: tuple, matched: np.ndarray, rows: np.ndarray
-    ) -> np.ndarray:
-        """The attitude (3, 3), inertial -> body, refined on all matches of a verified hypothesis ``attitude``
-        (``nearby``: the database stars about it, ``matched``, ``rows``: its matches).
+    def _grow(self, frame: _Frame, attitude: np.ndarray, nearby: _Nearby, matched: np.ndarray,
+              rows: np.ndarray) -> tuple:
+        """(attitude (3, 3) inertial -> body, the stars about it, the dot products (n, s) of the detections with them),
+        the attitude refined on all matches of a verified hypothesis ``attitude`` (``nearby``: the stars about it,
+        ``matched``, ``rows``: its matches).
 
         A hypothesis from one head's pattern leaves the roll about that head poorly known, which shifts the stars of
         other heads by more than the match radius; so matching alternates with refining the attitude, each detection
         searched within its match radius widened by 3 sigma of its predicted direction under the attitude's
-        covariance (:meth:`_widened2`), until the matches stop changing.  The last matching uses the plain match
+        covariance (:meth:`_widened_cos`), until the matches stop changing.  The last matching uses the plain match
         radius.
         """
-        body, unit = frame.body, self.database.match_unit
+        body, unit = frame.body, self._label_unit
         for _ in range(_GROW_STEPS):
-            attitude = wahba_svd(body[matched], unit[rows])
+            attitude = _wahba(body[matched], unit[rows])
             nearby = self._nearby(frame, attitude, nearby)
-            star, squared = self._closest(frame, attitude, nearby)
-            within = squared <= frame.radius2
-            final = closest_per_star(within.nonzero()[0], star, squared)
+            dots, star, dot = self._closest(frame, attitude, nearby)
+            within = dot >= frame.cos_radius
+            final = _closest_per_star(within.nonzero()[0], star, dot)
             grown = final
-            if ((squared <= _GROW_MAX**2 * frame.radius2) > within).any():  # else no widened radius matters
-                grown = closest_per_star((squared <= self._widened2(frame, matched)).nonzero()[0], star, squared)
+            if ((dot >= frame.cos_grow) > within).any():  # else no widened radius matters
+                grown = _closest_per_star((dot >= self._widened_cos(frame, matched)).nonzero()[0], star, dot)
             if same_matches(grown, (matched, rows)):
                 break
             matched, rows = grown
         else:
-            attitude = wahba_svd(body[matched], unit[rows])
-            star, squared = self._closest(frame, attitude, self._nearby(frame, attitude, nearby))
-            final = closest_per_star((squared <= frame.radius2).nonzero()[0], star, squared)
-        return attitude if same_matches(final, (matched, rows)) else wahba_svd(body[final[0]], unit[final[1]])
+            attitude = _wahba(body[matched], unit[rows])
+            nearby = self._nearby(frame, attitude, nearby)
+            dots, star, dot = self._closest(frame, attitude, nearby)
+            final = _closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, dot)
+        if not same_matches(final, (matched, rows)):
+            attitude = _wahba(body[final[0]], unit[final[1]])
+            nearby = self._nearby(frame, attitude, nearby)
+            dots = body @ (attitude @ nearby.unit.T)
+        return attitude, nearby, dots
 
-    def _widened2(self, frame: _Frame, matched: np.ndarray) -> np.ndarray:
-        """Squared search radii (n,): each detection's match radius widened by 3 sigma of its predicted direction
-        under the covariance of an attitude fitted on the ``matched`` detections, up to ``_GROW_MAX`` match radii."""
+    def _widened_cos(self, frame: _Frame, matched: np.ndarray) -> np.ndarray:
+        """Smallest dot products (n,) within each detection's match radius widened by 3 sigma of its predicted
+        direction under the covariance of an attitude fitted on the ``matched`` detections, up to ``_GROW_MAX`` match
+        radii."""
         b = frame.body[matched]
         weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2[matched]  # noise ** -2
         covariance = np.linalg.inv(weight.sum() * IDENTITY - (b.T * weight) @ b)  # rad^2, about body axes
         spread = covariance.trace() - ((frame.body @ covariance) * frame.body).sum(axis=1)
-        return np.minimum(frame.radius2 + 9.0 * np.maximum(spread, 0.0), _GROW_MAX**2 * frame.radius2)
+        return np.maximum(frame.cos_radius - 4.5 * np.maximum(spread, 0.0), frame.cos_grow)
 
-    def _nearby(self, frame: _Frame, attitude: np.ndarray, known: tuple | None = None) -> tuple:
-        """(attitude, match rows, inertial unit vectors (s, 3)) of the database stars in ``frame``'s cones under
-        ``attitude``; ``known`` itself if it was made for an attitude within ``_GROW_MAX`` match radii of this one,
-        as it then holds every star a detection may be matched to."""
-        if known is not None and np.vdot(known[0], attitude) >= 1.0 + 2.0 * math.cos(_GROW_MAX * frame.max_radius):
+    def _nearby(self, frame: _Frame, attitude: np.ndarray, known: _Nearby | None = None) -> _Nearby:
+        """The labelling stars in ``frame``'s cones under ``attitude``; ``known`` itself if it was made for an
+        attitude within ``_GROW_MAX`` match radii of this one, as it then holds every star a detection may be matched
+        to."""
+        if known is not None and np.vdot(known.attitude, attitude) >= frame.reuse:
             return known  # trace(A B^T) = 1 + 2 cos(angle between A and B)
-        found = self.database.tree.query_ball_point(frame.axes @ attitude, frame.chords, return_sorted=False)
-        if len(found) == 1:
-            rows = np.array(found[0], dtype=np.intp)
+        if len(frame.chords) == 1:
+            found = self._label_tree.query_ball_point(frame.axes[0] @ attitude, frame.chords[0], return_sorted=True)
+            rows = np.array(found, dtype=np.intp)
         else:  # the cones may overlap
+            found = self._label_tree.query_ball_point(frame.axes @ attitude, frame.chords, return_sorted=False)
             rows = np.unique(np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp))
-        return attitude, rows, self.database.match_unit[rows]
+        return _Nearby(attitude, rows, self._label_unit[rows], int(rows.searchsorted(self._label_db)))
 
-    def _closest(self, frame: _Frame, attitude: np.ndarray, nearby: tuple) -> tuple[np.ndarray, np.ndarray]:
-        """Per detection, the nearest database star of ``nearby`` under ``attitude`` (match row) and the squared
-        distance to it (inf when there is none)."""
-        _, rows, unit = nearby
-        if len(rows) == 0:
-            return np.zeros(len(frame.body), dtype=np.intp), np.full(len(frame.body), np.inf)
-        squared = 2.0 - 2.0 * (frame.body @ (attitude @ unit.T))  # (n, s) squared distances of unit vectors
-        return rows[squared.argmin(axis=1)], squared.min(axis=1)
+    def _closest(self, frame: _Frame, attitude: np.ndarray, nearby: _Nearby) -> tuple:
+        """The dot products (n, s) of the detections with ``nearby``'s stars under ``attitude``, and per detection the
+        nearest database star (labelling row) and the dot product with it (-inf when there is none)."""
+        dots = frame.body @ (attitude @ nearby.unit.T)
+        if nearby.n_db == 0:
+            return dots, np.zeros(len(dots), dtype=np.intp), np.full(len(dots), -np.inf)
+        on_db = dots[:, : nearby.n_db]
+        return dots, nearby.rows[on_db.argmax(axis=1)], on_db.max(axis=1)

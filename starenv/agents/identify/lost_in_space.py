@@ -91,6 +91,12 @@ _BIN_STEPS = (np.arange(32)[:, None] >> np.arange(5)) & 1  # (32, 5): step s pro
 _PROBES = np.all(_BIN_STEPS[None] <= _BIN_STEPS[:, None], axis=2)  # (32, 32): [w, s] step s within the bits w
 _BITS = 1 << np.arange(5)  # bit of each ratio in a bin step
 _SIGNS = np.array([-1.0, 1.0])[:, None, None]
+_ORDER_GRAM = (4 * STAR_ORDERS[:, EDGE_FROM] + STAR_ORDERS[:, EDGE_TO]).T.copy()  # (6, 24) Gram entry of edge, order
+_EDGE_PAIRS = list(zip(EDGE_FROM.tolist(), EDGE_TO.tolist(), strict=True))
+_ORDER_EDGE_LISTS = [tuple(order) for order in ORDER_EDGES.tolist()]
+_STAR_ORDER_LISTS = STAR_ORDERS.tolist()
+_ORDER_OF_EDGES = {edges: order for order, edges in enumerate(_ORDER_EDGE_LISTS)}  # star order of an edge mapping
+_FIRST_STEP = {count: list(itertools.combinations(range(count), 4)) for count in (4, 5)}  # the quads of step one
 
 
 def _breadth_first_quads(count: int) -> list[np.ndarray]:
@@ -127,10 +133,17 @@ def _closest_per_star(rows: np.ndarray, star: np.ndarray, dot: np.ndarray) -> tu
     return rows, stars
 
 
+def _pinhole_rays(cam: Camera) -> np.ndarray:
+    """The matrix (3, 3) taking undistorted pixel positions ``[x, y, 1]`` (rows) to camera-frame rays
+    ``[(x - cx) / fx, (y - cy) / fy, 1]``."""
+    return np.array([[1.0 / cam.fx, 0.0, 0.0], [0.0, 1.0 / cam.fy, 0.0], [-cam.cx / cam.fx, -cam.cy / cam.fy, 1.0]])
+
+
 class _Heads(NamedTuple):
     """Per-head constants of a list of cameras, made once for it: the cameras, their body -> camera matrices (None:
-    the identity), (centre (2,), 1 / focal lengths (2,)) px of an undistorted head (None: one with distortion, which
-    goes through :meth:`~starenv.sim.optics.Camera.unproject`), match radii (rad) and body-frame boresights."""
+    the identity), for an undistorted head the matrix (3, 3) taking pixel positions ``[x, y, 1]`` (rows) to
+    body-frame directions (None: a head with distortion, which goes through
+    :meth:`~starenv.sim.optics.Camera.unproject`), match radii (rad) and body-frame boresights."""
 
     cameras: tuple
     mountings: tuple
@@ -142,15 +155,16 @@ class _Heads(NamedTuple):
 class _Frame(NamedTuple):
     """The detections of one identification: pooled body-frame unit vectors (n, 3), their squared match radius (n,),
     the smallest dot product with a star within that radius (``cos_radius``) and within ``_GROW_MAX`` radii
-    (``cos_grow``), the largest radius; per head with detections its boresight ``axes`` (h, 3) and the chord of a cone
-    about it that holds every catalogue star a detection can be matched to while growing a hypothesis; ``area``: the
-    largest match disc as a fraction of the database field, ``reuse``: the smallest trace(A B^T) of two attitudes
-    whose cones are interchangeable (:meth:`LostInSpaceIdentifier._nearby`)."""
+    (``cos_grow``) (these three are numbers when all detections share one radius), the largest radius; per head with
+    detections its boresight ``axes`` (h, 3) and the chord of a cone about it that holds every catalogue star a
+    detection can be matched to while growing a hypothesis; ``area``: the largest match disc as a fraction of the
+    database field, ``reuse``: the smallest trace(A B^T) of two attitudes whose cones are interchangeable
+    (:meth:`LostInSpaceIdentifier._nearby`)."""
 
     body: np.ndarray
-    radius2: np.ndarray
-    cos_radius: np.ndarray
-    cos_grow: np.ndarray
+    radius2: float | np.ndarray
+    cos_radius: float | np.ndarray
+    cos_grow: float | np.ndarray
     max_radius: float
     axes: np.ndarray
     chords: list
@@ -160,12 +174,13 @@ class _Frame(NamedTuple):
 
 class _Nearby(NamedTuple):
     """The labelling stars in a frame's cones under ``attitude``: their rows (s,), ascending, so that the database
-    stars (the first ``n_db``) come first, and their inertial unit vectors (s, 3)."""
+    stars (the first ``n_db``) come first, their inertial unit vectors (s, 3) and the cones' axes (h, 3)."""
 
     attitude: np.ndarray
     rows: np.ndarray
     unit: np.ndarray
     n_db: int
+    centres: np.ndarray
 
 
 class LostInSpaceIdentifier:
@@ -236,6 +251,10 @@ class LostInSpaceIdentifier:
         step_keys = _BIN_STEPS @ self._digits
         self._probe_keys = np.stack([step_keys, step_keys + 1])  # per bin step: its key offset and the next one
         self._cos_half_field = math.cos(settings.fov_rad / 2.0)
+        self._digit_list = self._digits.tolist()
+        self._tolerance, self._blend_rad = settings.edge_tolerance_rad, settings.blend_rad
+        extent = (float(db.largest_edge.min()), float(db.largest_edge.max())) if len(db) else (math.inf, -math.inf)
+        self._largest_low, self._largest_high = extent[0] - self._tolerance, extent[1] + self._tolerance
         self._heads = None
 
     def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
@@ -250,11 +269,22 @@ class LostInSpaceIdentifier:
         if max(counts, default=0) >= 4:
             frame = self._frame(stars, self._heads_of(cameras), counts)
             solved = self._solve(frame, stars, counts)
-            if solved is not None:  # label: each detection with exactly one star within its radius, the closest
+            if solved is not None:  # label each detection with exactly one star within its radius (one a star)
                 _, nearby, dots = solved
-                alone = ((dots >= frame.cos_radius[:, None]).sum(axis=1) == 1).nonzero()[0]
-                labelled, hit = _closest_per_star(alone, dots.argmax(axis=1), dots.max(axis=1))
-                ids[labelled] = self._label_hip[nearby.rows[hit]]
+                cos_radius = frame.cos_radius if isinstance(frame.cos_radius, float) else frame.cos_radius[:, None]
+                detection, star = (dots >= cos_radius).nonzero()  # ascending detections
+                detections = detection.tolist()
+                if len(set(detections)) < len(detections):  # some with two or more: left out
+                    alone = np.bincount(detection, minlength=len(ids))[detection] == 1
+                    detection, star = detection[alone], star[alone]
+                stars_hit = star.tolist()
+                if len(set(stars_hit)) < len(stars_hit):  # a star with several detections keeps the closest
+                    dot = np.full(len(ids), -np.inf)
+                    dot[detection] = dots[detection, star]
+                    star_of = np.zeros(len(ids), dtype=np.intp)
+                    star_of[detection] = star
+                    detection, star = _closest_per_star(detection, star_of, dot)
+                ids[detection] = self._label_hip[nearby.rows[star]]
         return with_ids(stars, ids)
 
     def _heads_of(self, cameras: list[Camera]) -> _Heads:
@@ -269,10 +299,8 @@ class LostInSpaceIdentifier:
             cameras=tuple(cameras),
             mountings=tuple(None if np.array_equal(m, IDENTITY) else m for m in mountings),
             pinholes=tuple(
-                (np.array([cam.cx, cam.cy]), np.array([1.0 / cam.fx, 1.0 / cam.fy]))
-                if type(cam.distortion) is NoDistortion
-                else None
-                for cam in cameras
+                _pinhole_rays(cam) @ m if type(cam.distortion) is NoDistortion else None
+                for cam, m in zip(cameras, mountings, strict=True)
             ),
             radius=tuple(self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras),
             axes=tuple(m[2].copy() for m in mountings),
@@ -285,20 +313,19 @@ class LostInSpaceIdentifier:
         for s, cam, mounting, pinhole in zip(stars, heads.cameras, heads.mountings, heads.pinholes, strict=True):
             xy = np.asarray(s.xy, dtype=np.float64).reshape(-1, 2)
             if pinhole is None:
-                v = cam.unproject(xy)
-            else:  # Camera.unproject of an undistorted head
-                d = (xy - pinhole[0]) * pinhole[1]
-                scale = 1.0 / np.sqrt(1.0 + (d * d).sum(axis=1))
-                v = np.empty((len(d), 3))
-                v[:, :2] = d * scale[:, None]
-                v[:, 2] = scale
-            vectors.append(v if mounting is None else v @ mounting)
+                vectors.append(cam.unproject(xy) if mounting is None else cam.unproject(xy) @ mounting)
+            else:  # the pinhole's rays, rotated into the body frame, then normalised
+                v = np.ones((len(xy), 3))
+                v[:, :2] = xy
+                v = v @ pinhole
+                v /= np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
+                vectors.append(v)
         body = vectors[0] if len(vectors) == 1 else np.concatenate(vectors)
-        if len(counts) == 1:
-            max_radius = heads.radius[0]
-            radius2 = np.full(len(body), max_radius**2)
+        radii = {r for r, count in zip(heads.radius, counts, strict=True) if count}
+        max_radius = max(radii)
+        if len(radii) == 1:  # one radius for all: a number
+            radius2 = max_radius**2
         else:
-            max_radius = max(r for r, count in zip(heads.radius, counts, strict=True) if count)
             radius2 = np.repeat(np.square(heads.radius), counts)
         half_field = self.database.settings.fov_rad / 2.0
         axes, chords, first = [], [], 0
@@ -324,14 +351,29 @@ class LostInSpaceIdentifier:
         """(attitude (3, 3) inertial -> body, the stars about it (:class:`_Nearby`), the dot products (n, s) of the
         detections with them) from the verified hypothesis of the first breadth-first step that has any, grown and
         refined (:meth:`_grow`); None if no step has one."""
-        heads, first = [], 0
+        brightest, first = [], 0
         for s, count in zip(stars, counts, strict=True):  # per head, pooled rows of its brightest detections
-            if count >= 4:  # (brightest first) and their angles
-                rows = first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
-                vectors = frame.body[rows]
-                heads.append((rows, np.arccos(np.minimum(vectors @ vectors.T, 1.0))))
+            if count >= 4:  # (brightest first)
+                brightest.append(first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars])
             first += count
-        for step, (edge_from, edge_to), last in self._quad_steps:
+        steps = self._quad_steps
+        if len(brightest) == 1:  # one head: the quads of the first step one at a time, in plain numbers
+            top = brightest[0][:5]
+            vectors = frame.body[top]
+            angles = np.arccos(np.minimum(vectors @ vectors.T, 1.0)).tolist()
+            for quad in _FIRST_STEP[len(top)]:
+                candidates = self._quad_candidates([angles[quad[i]][quad[j]] for i, j in _EDGE_PAIRS])
+                if candidates:
+                    rows = top[list(quad)][None]
+                    hypothesis = self._best_hypothesis(frame, rows, np.zeros(len(candidates), np.intp), candidates)
+                    if hypothesis is not None:  # (a second verified attitude in the step would be a false match)
+                        return self._grow(frame, *hypothesis)
+            steps = steps[1:]
+        heads = []
+        for rows in brightest:  # their angles
+            vectors = frame.body[rows]
+            heads.append((rows, np.arccos(np.minimum(vectors @ vectors.T, 1.0))))
+        for step, (edge_from, edge_to), last in steps:
             quads, edges = [], []
             for rows, angles in heads:
                 count = bisect.bisect_left(last, len(rows))  # the quads within this head's stars
@@ -342,7 +384,7 @@ class LostInSpaceIdentifier:
                 return None
             if len(quads) > 1:
                 quads, edges = [np.concatenate(quads)], [np.concatenate(edges)]
-            hypothesis = self._best_hypothesis(frame, quads[0], edges[0])
+            hypothesis = self._best_hypothesis(frame, quads[0], *self._candidates(edges[0]))
             if hypothesis is not None:
                 return self._grow(frame, *hypothesis)
         return None
@@ -372,17 +414,79 @@ class LostInSpaceIdentifier:
         quad_of, catalog_rows = quad_of[same_scale], db.patterns[pattern[same_scale]]
         # ... and then all six edges, under one of the 24 star orders.
         vectors = db.unit[catalog_rows]
-        catalog_edges = np.arccos(np.minimum((vectors @ vectors.transpose(0, 2, 1))[:, EDGE_FROM, EDGE_TO], 1.0))
-        miss = np.abs(catalog_edges[:, ORDER_EDGES] - edges[quad_of, None, :]).max(axis=2)  # (k, 24)
+        gram = (vectors @ vectors.transpose(0, 2, 1)).reshape(-1, 16)
+        catalog_edges = np.arccos(np.minimum(gram[:, _ORDER_GRAM], 1.0))  # (k, 6, 24): edge e under order o
+        miss = np.abs(catalog_edges - edges[quad_of, :, None]).max(axis=1)  # (k, 24)
         close = (miss.min(axis=1) <= tolerance).nonzero()[0]
         return quad_of[close], catalog_rows[close[:, None], STAR_ORDERS[miss[close].argmin(axis=1)]]
 
-    def _best_hypothesis(self, frame: _Frame, quads: np.ndarray, edges: np.ndarray) -> tuple | None:
-        """The verified hypothesis matching most detections among those of the quads (pooled rows (q, 4)) of edges
-        ``edges`` (q, 6), or None; a hypothesis is (attitude (3, 3), the stars about it (:meth:`_nearby`), its matched
-        detections and their labelling rows)."""
+    def _quad_candidates(self, edges: list) -> list:
+        """:meth:`_candidates` of one quad of edges ``edges`` (six numbers, rad) in plain numbers: the catalogue star
+        rows (4,) of each matching pattern, in the quad's star order."""
         db = self.database
-        quad_of, catalog_rows = self._candidates(edges)
+        ordered = sorted(edges)
+        largest = ordered[5]
+        tolerance, bins = self._tolerance, self._bins
+        if ordered[0] < self._blend_rad or not self._largest_low <= largest <= self._largest_high:
+            return []  # no database pattern has such edges
+        scale = tolerance / largest
+        base, steps = 0, [0]
+        for ratio, digit in zip([edge / largest for edge in ordered[:5]], self._digit_list, strict=True):
+            spread = (ratio + 1.0) * scale
+            low = max(math.floor((ratio - spread) * bins), 0)
+            base += low * digit
+            if min(math.floor((ratio + spread) * bins), bins - 1) > low:  # the bin above too
+                steps += [step + digit for step in steps]
+        keys = [base + step for step in steps]
+        bounds = db.keys.searchsorted(keys + [key + 1 for key in keys]).tolist()
+        patterns = [p for first, end in zip(bounds[: len(keys)], bounds[len(keys) :], strict=True)
+                    for p in range(first, end)]
+        if not patterns:
+            return []
+        patterns = [p for p, edge in zip(patterns, db.largest_edge[patterns].tolist(), strict=True)
+                    if abs(edge - largest) <= tolerance]
+        if not patterns:
+            return []
+        # Edges more than two tolerances apart keep their order in any match: the one by rank is the only one.
+        by_rank = sorted(range(6), key=edges.__getitem__)
+        separated = all(b - a > 2.0 * tolerance for a, b in itertools.pairwise(ordered))
+        found = []
+        stars = db.patterns[patterns]
+        for rows, units in zip(stars.tolist(), db.unit[stars].tolist(), strict=True):
+            catalog = [math.acos(min(sum(a * b for a, b in zip(units[i], units[j], strict=True)), 1.0))
+                       for i, j in _EDGE_PAIRS]
+            best = -1
+            if separated:
+                mapping = [0] * 6
+                for edge, catalog_edge in zip(by_rank, sorted(range(6), key=catalog.__getitem__), strict=True):
+                    mapping[edge] = catalog_edge
+                order = _ORDER_OF_EDGES.get(tuple(mapping), -1)
+                if order >= 0 and max(abs(catalog[c] - e) for c, e in zip(mapping, edges, strict=True)) <= tolerance:
+                    best = order
+            else:  # the star order of the smallest largest edge miss, the first of equals
+                best_miss = tolerance
+                for order, order_edges in enumerate(_ORDER_EDGE_LISTS):
+                    miss = 0.0
+                    for edge, catalog_edge in zip(edges, order_edges, strict=True):
+                        difference = abs(catalog[catalog_edge] - edge)
+                        if difference > miss:
+                            miss = difference
+                            if miss > best_miss:
+                                break
+                    else:
+                        if best < 0 or miss < best_miss:
+                            best, best_miss = order, miss
+            if best >= 0:
+                found.append([rows[star] for star in _STAR_ORDER_LISTS[best]])
+        return found
+
+    def _best_hypothesis(self, frame: _Frame, quads: np.ndarray, quad_of: np.ndarray,
+                         catalog_rows: np.ndarray | list) -> tuple | None:
+        """The verified hypothesis matching most detections among the candidates of the quads (pooled rows (q, 4)):
+        quad ``quad_of`` (k,) matched by the catalogue stars ``catalog_rows`` (k, 4) (:meth:`_candidates`), or None; a
+        hypothesis is (attitude (3, 3), the stars about it (:meth:`_nearby`), its matched detections and their
+        labelling rows)."""
+        db = self.database
         if len(quad_of) == 0:
             return None
         detections = quads[quad_of]  # (k, 4)
@@ -390,7 +494,8 @@ class LostInSpaceIdentifier:
         attitudes = wahba_svd(pattern_body, catalog)
         miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
         best, best_count = None, 0
-        for attitude in attitudes[(miss <= frame.radius2[detections]).all(axis=1)]:
+        radius2 = frame.radius2 if isinstance(frame.radius2, float) else frame.radius2[detections]
+        for attitude in attitudes[(miss <= radius2).all(axis=1)]:
             if best is not None and np.vdot(attitude, best[0]) > 3.0 - _SAME_ATTITUDE_TRACE:
                 continue  # the same solution from another pattern
             nearby = self._nearby(frame, attitude)
@@ -399,8 +504,11 @@ class LostInSpaceIdentifier:
             m = len(matched)
             if m <= best_count or m < 3:
                 continue
-            in_field = ((nearby.unit[: nearby.n_db] @ (frame.axes @ attitude).T) >= self._cos_half_field).sum(axis=0)
-            if bdtrc(m - 3, len(frame.body), min(in_field.max() * frame.area, 1.0)) < self.match_threshold:
+            if len(nearby.centres) == 1:  # database stars in the field about each boresight, at most
+                in_field = np.count_nonzero(nearby.unit[: nearby.n_db] @ nearby.centres[0] >= self._cos_half_field)
+            else:
+                in_field = ((nearby.unit[: nearby.n_db] @ nearby.centres.T) >= self._cos_half_field).sum(axis=0).max()
+            if bdtrc(m - 3, len(frame.body), min(in_field * frame.area, 1.0)) < self.match_threshold:
                 best, best_count = (attitude, nearby, matched, rows), m
         return best
 
@@ -445,8 +553,13 @@ class LostInSpaceIdentifier:
         direction under the covariance of an attitude fitted on the ``matched`` detections, up to ``_GROW_MAX`` match
         radii."""
         b = frame.body[matched]
-        weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2[matched]  # noise ** -2
-        covariance = np.linalg.inv(weight.sum() * IDENTITY - (b.T * weight) @ b)  # rad^2, about body axes
+        if isinstance(frame.radius2, float):
+            weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2  # noise ** -2
+            information = weight * (len(b) * IDENTITY - b.T @ b)
+        else:
+            weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2[matched]
+            information = weight.sum() * IDENTITY - (b.T * weight) @ b
+        covariance = np.linalg.inv(information)  # rad^2, about body axes
         spread = covariance.trace() - ((frame.body @ covariance) * frame.body).sum(axis=1)
         return np.maximum(frame.cos_radius - 4.5 * np.maximum(spread, 0.0), frame.cos_grow)
 
@@ -456,13 +569,14 @@ class LostInSpaceIdentifier:
         to."""
         if known is not None and np.vdot(known.attitude, attitude) >= frame.reuse:
             return known  # trace(A B^T) = 1 + 2 cos(angle between A and B)
+        centres = frame.axes @ attitude
         if len(frame.chords) == 1:
-            found = self._label_tree.query_ball_point(frame.axes[0] @ attitude, frame.chords[0], return_sorted=True)
+            found = self._label_tree.query_ball_point(centres[0], frame.chords[0], return_sorted=True)
             rows = np.array(found, dtype=np.intp)
         else:  # the cones may overlap
-            found = self._label_tree.query_ball_point(frame.axes @ attitude, frame.chords, return_sorted=False)
+            found = self._label_tree.query_ball_point(centres, frame.chords, return_sorted=False)
             rows = np.unique(np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp))
-        return _Nearby(attitude, rows, self._label_unit[rows], int(rows.searchsorted(self._label_db)))
+        return _Nearby(attitude, rows, self._label_unit[rows], int(rows.searchsorted(self._label_db)), centres)
 
     def _closest(self, frame: _Frame, attitude: np.ndarray, nearby: _Nearby) -> tuple:
         """The dot products (n, s) of the detections with ``nearby``'s stars under ``attitude``, and per detection the

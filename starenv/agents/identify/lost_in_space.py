@@ -50,6 +50,7 @@ from __future__ import annotations
 import bisect
 import itertools
 import math
+import operator
 from typing import NamedTuple
 
 import numpy as np
@@ -447,22 +448,31 @@ class LostInSpaceIdentifier:
                     if abs(edge - largest) <= tolerance]
         if not patterns:
             return []
-        # Edges more than two tolerances apart keep their order in any match: the one by rank is the only one.
-        by_rank = sorted(range(6), key=edges.__getitem__)
-        separated = all(b - a > 2.0 * tolerance for a, b in itertools.pairwise(ordered))
+        # Any match keeps each edge within the tolerance of its catalogue edge, so the sorted edges too; and edges more
+        # than two tolerances apart keep their order: then the match by rank is the only one.
+        rank = [0] * 6
+        for position, edge in enumerate(sorted(range(6), key=edges.__getitem__)):
+            rank[edge] = position
+        separated = min(map(operator.sub, ordered[1:], ordered[:5])) > 2.0 * tolerance
         found = []
         stars = db.patterns[patterns]
-        for rows, units in zip(stars.tolist(), db.unit[stars].tolist(), strict=True):
-            catalog = [math.acos(min(sum(a * b for a, b in zip(units[i], units[j], strict=True)), 1.0))
-                       for i, j in _EDGE_PAIRS]
+        for rows, ((ax, ay, az), (bx, by, bz), (cx, cy, cz), (dx, dy, dz)) in zip(
+            stars.tolist(), db.unit[stars].tolist(), strict=True
+        ):
+            catalog = [  # edges 01, 02, 03, 12, 13, 23
+                math.acos(min(ax * bx + ay * by + az * bz, 1.0)),
+                math.acos(min(ax * cx + ay * cy + az * cz, 1.0)),
+                math.acos(min(ax * dx + ay * dy + az * dz, 1.0)),
+                math.acos(min(bx * cx + by * cy + bz * cz, 1.0)),
+                math.acos(min(bx * dx + by * dy + bz * dz, 1.0)),
+                math.acos(min(cx * dx + cy * dy + cz * dz, 1.0)),
+            ]
+            if max(map(abs, map(operator.sub, sorted(catalog), ordered))) > tolerance:
+                continue
             best = -1
-            if separated:
-                mapping = [0] * 6
-                for edge, catalog_edge in zip(by_rank, sorted(range(6), key=catalog.__getitem__), strict=True):
-                    mapping[edge] = catalog_edge
-                order = _ORDER_OF_EDGES.get(tuple(mapping), -1)
-                if order >= 0 and max(abs(catalog[c] - e) for c, e in zip(mapping, edges, strict=True)) <= tolerance:
-                    best = order
+            if separated:  # the miss of the match by rank is that of the sorted edges
+                by_rank = sorted(range(6), key=catalog.__getitem__)
+                best = _ORDER_OF_EDGES.get(tuple([by_rank[position] for position in rank]), -1)
             else:  # the star order of the smallest largest edge miss, the first of equals
                 best_miss = tolerance
                 for order, order_edges in enumerate(_ORDER_EDGE_LISTS):
@@ -491,7 +501,7 @@ class LostInSpaceIdentifier:
             return None
         detections = quads[quad_of]  # (k, 4)
         pattern_body, catalog = frame.body[detections], db.unit[catalog_rows]
-        attitudes = wahba_svd(pattern_body, catalog)
+        attitudes = _wahba(pattern_body[0], catalog[0])[None] if len(catalog) == 1 else wahba_svd(pattern_body, catalog)
         miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
         best, best_count = None, 0
         radius2 = frame.radius2 if isinstance(frame.radius2, float) else frame.radius2[detections]

@@ -54,6 +54,7 @@ import operator
 from typing import NamedTuple
 
 import numpy as np
+from scipy.linalg.lapack import dgesvd
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc
@@ -113,7 +114,9 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
 def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
     """The attitude (3, 3), inertial -> body, minimising sum |b - A r|^2 over pairs of unit vectors (n, 3): the SVD
     solution of Wahba's problem as :func:`~starenv.agents.solve.wahba_svd`, for one set of pairs."""
-    u, _, vt = np.linalg.svd(body.T @ inertial)
+    u, _, vt, info = dgesvd(body.T @ inertial)  # LAPACK directly: numpy's wrapper costs more than the solution
+    if info != 0:
+        u, _, vt = np.linalg.svd(body.T @ inertial)
     attitude = u @ vt
     (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
     if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:  # a reflection: flip the last axis

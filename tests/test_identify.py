@@ -567,3 +567,23 @@ def test_the_one_quad_lookup_finds_what_the_vectorised_lookup_finds(lost_in_spac
         assert sorted(map(tuple, identifier._quad_candidates(edges.tolist()))) == sorted(map(tuple, rows.tolist()))
         found += len(rows) > 0
     assert found >= 60
+
+
+def test_the_sky_cells_list_every_star_a_cone_about_their_points_holds(lost_in_space):
+    # The stars about a boresight come from the list of its sky cell: every labelling star within the cone's reach of
+    # any direction in the cell, and database stars first.
+    from starenv.agents.identify.lost_in_space import _cube_cell, _sky_grid
+
+    identifier, _ = lost_in_space["narrow"]
+    tree, reach = identifier._label_tree, identifier._grid_reach
+    offsets, listed, below = _sky_grid(tree, reach, identifier._label_db)
+    rng = np.random.default_rng(23)
+    directions = rng.normal(size=(300, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    directions[:6] = np.eye(3)[[0, 1, 2, 0, 1, 2]] * [[1], [1], [1], [-1], [-1], [-1]]  # cube face centres
+    for direction in directions:
+        cell = _cube_cell(*direction.tolist())
+        rows = listed[offsets[cell] : offsets[cell + 1]]
+        assert np.all(np.diff(rows) > 0)
+        assert np.sum(rows < identifier._label_db) == below[cell]
+        assert set(tree.query_ball_point(direction, 2.0 * math.sin(reach / 2.0))) <= set(rows.tolist())

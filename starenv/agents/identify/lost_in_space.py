@@ -39,7 +39,9 @@ Lost in space (:class:`LostInSpaceIdentifier`)
     more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1 px of noise per axis, the 3 px default
     alone would leave about 1 % of the stars unlabelled (``exp(-4.5)``).  Verifying, refining and labelling
     compare the detections with the labelling stars (the database's first) of a cone about each head's boresight,
-    found once for all three, by brute force (both sets are small), rather than through a k-d tree query a detection.
+    found once for all three, by brute force (both sets are small), rather than through a k-d tree query a detection;
+    for one head the cone's stars are those listed for the sky cell of its boresight (the sky split into cells on a
+    cube's faces, each listing the stars within a head's reach of any of its points; made on the first use).
 
 Tracking (:class:`TrackingIdentifier`, :mod:`starenv.agents.identify.tracking`)
     With a prior attitude: detections paired with the catalogue stars within a gate of their predicted positions by
@@ -98,6 +100,8 @@ _GROW_MAX = 10.0  # widest search in those rounds, in match radii
 _LABEL_SIGMAS = 4.0  # the labelling radius holds this many centroid standard deviations (as measured) ...
 _LABEL_MAX = 1.5  # ... up to this many match radii
 _SCATTER_PAIRS = 8  # detections within the match radius needed to measure the scatter
+_GRID_CELLS = 24  # sky cells along a cube face's side: the stars about a boresight are listed per cell
+_GRID_MARGIN_PX = 2.0  # margin of the cell lists beyond the heads' corners (coarsest pixels)
 _BIN_STEPS = (np.arange(32)[:, None] >> np.arange(5)) & 1  # (32, 5): step s probes the bin above for the set bits of s
 _PROBES = np.all(_BIN_STEPS[None] <= _BIN_STEPS[:, None], axis=2)  # (32, 32): [w, s] step s within the bits w
 _BITS = 1 << np.arange(5)  # bit of each ratio in a bin step
@@ -150,6 +154,49 @@ def _pinhole_rays(cam: Camera) -> np.ndarray:
     """The matrix (3, 3) taking undistorted pixel positions ``[x, y, 1]`` (rows) to camera-frame rays
     ``[(x - cx) / fx, (y - cy) / fy, 1]``."""
     return np.array([[1.0 / cam.fx, 0.0, 0.0], [0.0, 1.0 / cam.fy, 0.0], [-cam.cx / cam.fx, -cam.cy / cam.fy, 1.0]])
+
+
+def _cube_cell(x: float, y: float, z: float) -> int:
+    """The sky cell of a unit vector: the cube face its largest component points to, split into ``_GRID_CELLS`` by
+    ``_GRID_CELLS`` cells along the other two components divided by that one (a gnomonic projection)."""
+    n = _GRID_CELLS
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:
+        face, largest, u, v = (0 if x > 0.0 else 1), ax, y, z
+    elif ay >= az:
+        face, largest, u, v = (2 if y > 0.0 else 3), ay, x, z
+    else:
+        face, largest, u, v = (4 if z > 0.0 else 5), az, x, y
+    i = min(int((u / largest + 1.0) * (0.5 * n)), n - 1)
+    j = min(int((v / largest + 1.0) * (0.5 * n)), n - 1)
+    return (face * n + i) * n + j
+
+
+def _sky_grid(tree: cKDTree, reach: float, first_rows: int) -> tuple[list, np.ndarray, list]:
+    """Per sky cell (:func:`_cube_cell`), the rows of the stars of ``tree`` within ``reach`` (rad) of any point of the
+    cell, ascending: (offsets of each cell's rows (cells + 1,), the rows, per cell how many are below
+    ``first_rows``)."""
+    n = _GRID_CELLS
+    ticks = np.linspace(-1.0, 1.0, n + 1)
+    u, v = np.meshgrid(ticks, ticks, indexing="ij")  # cell corners (n + 1, n + 1)
+    centres, radii = [], []
+    for face in range(6):
+        sign = 1.0 if face % 2 == 0 else -1.0
+        axis = face // 2
+        corners = np.insert(np.stack([u, v], axis=-1), axis, sign, axis=-1)  # (n + 1, n + 1, 3)
+        corners /= np.linalg.norm(corners, axis=-1, keepdims=True)
+        centre = corners[:-1, :-1] + corners[1:, :-1] + corners[:-1, 1:] + corners[1:, 1:]
+        centre /= np.linalg.norm(centre, axis=-1, keepdims=True)
+        cosines = np.stack([np.sum(centre * corners[a : a + n, b : b + n], axis=-1) for a in (0, 1) for b in (0, 1)])
+        centres.append(centre.reshape(-1, 3))
+        radii.append(np.arccos(np.clip(cosines.min(axis=0), -1.0, 1.0)).ravel())
+    centres, radii = np.concatenate(centres), np.concatenate(radii)
+    found = tree.query_ball_point(centres, 2.0 * np.sin(np.minimum(reach + radii, math.pi) / 2.0), return_sorted=True)
+    counts = np.array([len(rows) for rows in found])
+    rows = np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp, count=int(counts.sum()))
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    below = np.concatenate([[0], np.cumsum(rows < first_rows)])
+    return offsets.tolist(), rows, (below[offsets[1:]] - below[offsets[:-1]]).tolist()
 
 
 class _Heads(NamedTuple):
@@ -259,6 +306,12 @@ class LostInSpaceIdentifier:
         rows = np.concatenate([in_db, rows[~np.isin(rows, in_db)]])
         self._label_unit, self._label_hip, self._label_db = catalog.unit[rows], catalog.hip[rows], len(in_db)
         self._label_tree = cKDTree(self._label_unit)
+        reach = max(
+            max(cam.half_diagonal + 2.0 * _GROW_MAX * self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras)
+            + _GRID_MARGIN_PX * settings.merge_rad / MERGE_PX,
+            settings.fov_rad / 2.0,
+        )
+        self._grid, self._grid_reach, self._grid_chord = None, reach, chord(reach)  # made on first use
         self._bins = settings.bins
         self._digits = np.int64(self._bins) ** np.arange(5, dtype=np.int64)  # key = bin numbers @ digits
         step_keys = _BIN_STEPS @ self._digits
@@ -332,14 +385,23 @@ class LostInSpaceIdentifier:
 
     def _frame(self, stars: list[StarMeasurements], heads: _Heads, counts: list[int]) -> _Frame:
         """The detections of one call with their match radii and search cones (see :class:`_Frame`)."""
-        vectors = []
-        for s, cam, mounting, pinhole in zip(stars, heads.cameras, heads.mountings, heads.pinholes, strict=True):
+        vectors, reaches = [], []  # per head, its body vectors and the largest angle of one from its boresight
+        for s, cam, mounting, pinhole, axis in zip(
+            stars, heads.cameras, heads.mountings, heads.pinholes, heads.axes, strict=True
+        ):
             xy = np.asarray(s.xy, dtype=np.float64).reshape(-1, 2)
-            if pinhole is None:
-                vectors.append(cam.unproject(xy) if mounting is None else cam.unproject(xy) @ mounting)
-            else:  # the pinhole's rays, rotated into the body frame, then normalised
+            if not len(xy):
+                reaches.append(0.0)
+                vectors.append(np.zeros((0, 3)))
+            elif pinhole is None:
+                v = cam.unproject(xy) if mounting is None else cam.unproject(xy) @ mounting
+                reaches.append(math.acos(min(float((v @ axis).min()), 1.0)))
+                vectors.append(v)
+            else:  # the pinhole's rays [(x - cx) / fx, (y - cy) / fy, 1], rotated into the body frame, normalised
                 v = xy @ pinhole[:2] + pinhole[2]
-                v /= np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
+                length = np.sqrt(np.einsum("ij,ij->i", v, v))
+                v /= length[:, None]
+                reaches.append(math.acos(min(1.0 / float(length.max()), 1.0)))  # cos(angle) = 1 / |ray|
                 vectors.append(v)
         body = vectors[0] if len(vectors) == 1 else np.concatenate(vectors)
         radii = {r for r, count in zip(heads.radius, counts, strict=True) if count}
@@ -349,13 +411,11 @@ class LostInSpaceIdentifier:
         else:
             radius2 = np.repeat(np.square(heads.radius), counts)
         half_field = self.database.settings.fov_rad / 2.0
-        axes, chords, first = [], [], 0
-        for count, axis in zip(counts, heads.axes, strict=True):
+        axes, chords = [], []
+        for count, axis, reach in zip(counts, heads.axes, reaches, strict=True):
             if count:
-                reach = math.acos(min(float((body[first : first + count] @ axis).min()), 1.0))
                 axes.append(axis)
                 chords.append(chord(max(reach + 2.0 * _GROW_MAX * max_radius, half_field)))
-            first += count
         return _Frame(
             body=body,
             radius2=radius2,
@@ -600,6 +660,13 @@ class LostInSpaceIdentifier:
         if known is not None and np.vdot(known.attitude, attitude) >= frame.reuse:
             return known  # trace(A B^T) = 1 + 2 cos(angle between A and B)
         centres = frame.axes @ attitude
+        if len(frame.chords) == 1 and frame.chords[0] <= self._grid_chord:  # the stars listed for the sky cell
+            if self._grid is None:
+                self._grid = _sky_grid(self._label_tree, self._grid_reach, self._label_db)
+            offsets, listed, below = self._grid
+            cell = _cube_cell(*centres[0].tolist())
+            rows = listed[offsets[cell] : offsets[cell + 1]]
+            return _Nearby(attitude, rows, self._label_unit[rows], below[cell], centres)
         if len(frame.chords) == 1:
             found = self._label_tree.query_ball_point(centres[0], frame.chords[0], return_sorted=True)
             rows = np.array(found, dtype=np.intp)

@@ -199,10 +199,15 @@ def _sky_grid(tree: cKDTree, reach: float, first_rows: int) -> tuple[list, np.nd
     return offsets.tolist(), rows, (below[offsets[1:]] - below[offsets[:-1]]).tolist()
 
 
+def _split_rows(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A matrix (3, 3) applied to rows ``[x, y, 1]`` as ``[x, y] @ its first two rows + its third``."""
+    return matrix[:2].copy(), matrix[2].copy()
+
+
 class _Heads(NamedTuple):
     """Per-head constants of a list of cameras, made once for it: the cameras, their body -> camera matrices (None:
     the identity), for an undistorted head the matrix (3, 3) taking pixel positions ``[x, y, 1]`` (rows) to
-    body-frame directions (None: a head with distortion, which goes through
+    body-frame directions, split by :func:`_split_rows` (None: a head with distortion, which goes through
     :meth:`~starenv.sim.optics.Camera.unproject`), match radii (rad) and body-frame boresights."""
 
     cameras: tuple
@@ -366,8 +371,8 @@ class LostInSpaceIdentifier:
     def _heads_of(self, cameras: list[Camera]) -> _Heads:
         """The per-head constants of ``cameras`` (kept for the last list of cameras seen; cameras are frozen)."""
         heads = self._heads
-        if heads is not None and len(heads.cameras) == len(cameras) and all(
-            a is b for a, b in zip(heads.cameras, cameras, strict=True)
+        if heads is not None and len(heads.cameras) == len(cameras) and (
+            heads.cameras[0] is cameras[0] if len(cameras) == 1 else all(map(operator.is_, heads.cameras, cameras))
         ):
             return heads
         mountings = [cam.mounting.as_matrix() for cam in cameras]
@@ -375,7 +380,7 @@ class LostInSpaceIdentifier:
             cameras=tuple(cameras),
             mountings=tuple(None if np.array_equal(m, IDENTITY) else m for m in mountings),
             pinholes=tuple(
-                _pinhole_rays(cam) @ m if type(cam.distortion) is NoDistortion else None
+                _split_rows(_pinhole_rays(cam) @ m) if type(cam.distortion) is NoDistortion else None
                 for cam, m in zip(cameras, mountings, strict=True)
             ),
             radius=tuple(self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras),
@@ -398,7 +403,7 @@ class LostInSpaceIdentifier:
                 reaches.append(math.acos(min(float((v @ axis).min()), 1.0)))
                 vectors.append(v)
             else:  # the pinhole's rays [(x - cx) / fx, (y - cy) / fy, 1], rotated into the body frame, normalised
-                v = xy @ pinhole[:2] + pinhole[2]
+                v = xy @ pinhole[0] + pinhole[1]
                 length = np.sqrt(np.einsum("ij,ij->i", v, v))
                 v /= length[:, None]
                 reaches.append(math.acos(min(1.0 / float(length.max()), 1.0)))  # cos(angle) = 1 / |ray|
@@ -435,7 +440,8 @@ class LostInSpaceIdentifier:
         brightest, first = [], 0
         for s, count in zip(stars, counts, strict=True):  # per head, pooled rows of its brightest detections
             if count >= 4:  # (brightest first)
-                brightest.append(first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars])
+                order = np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
+                brightest.append(order + first if first else order)
             first += count
         steps = self._quad_steps
         if len(brightest) == 1:  # one head: the quads of the first step one at a time, in plain numbers
@@ -445,8 +451,7 @@ class LostInSpaceIdentifier:
             for quad in _FIRST_STEP[len(top)]:
                 candidates = self._quad_candidates([angles[quad[i]][quad[j]] for i, j in _EDGE_PAIRS])
                 if candidates:
-                    rows = top[list(quad)][None]
-                    hypothesis = self._best_hypothesis(frame, rows, np.zeros(len(candidates), np.intp), candidates)
+                    hypothesis = self._best_hypothesis(frame, vectors[list(quad)][None], candidates, frame.radius2)
                     if hypothesis is not None:  # (a second verified attitude in the step would be a false match)
                         return self._grow(frame, *hypothesis)
             steps = steps[1:]
@@ -465,7 +470,10 @@ class LostInSpaceIdentifier:
                 return None
             if len(quads) > 1:
                 quads, edges = [np.concatenate(quads)], [np.concatenate(edges)]
-            hypothesis = self._best_hypothesis(frame, quads[0], *self._candidates(edges[0]))
+            quad_of, catalog_rows = self._candidates(edges[0])
+            detections = quads[0][quad_of]  # (k, 4)
+            radius2 = frame.radius2 if isinstance(frame.radius2, float) else frame.radius2[detections]
+            hypothesis = self._best_hypothesis(frame, frame.body[detections], catalog_rows, radius2)
             if hypothesis is not None:
                 return self._grow(frame, *hypothesis)
         return None
@@ -530,10 +538,7 @@ class LostInSpaceIdentifier:
             return []
         # Any match keeps each edge within the tolerance of its catalogue edge, so the sorted edges too; and edges more
         # than two tolerances apart keep their order: then the match by rank is the only one.
-        rank = [0] * 6
-        for position, edge in enumerate(sorted(range(6), key=edges.__getitem__)):
-            rank[edge] = position
-        separated = min(map(operator.sub, ordered[1:], ordered[:5])) > 2.0 * tolerance
+        rank = None
         found = []
         stars = db.patterns[patterns]
         for rows, ((ax, ay, az), (bx, by, bz), (cx, cy, cz), (dx, dy, dz)) in zip(
@@ -549,6 +554,11 @@ class LostInSpaceIdentifier:
             ]
             if max(map(abs, map(operator.sub, sorted(catalog), ordered))) > tolerance:
                 continue
+            if rank is None:  # (the quad's rank of each edge, and whether its edges are apart)
+                rank = [0] * 6
+                for position, edge in enumerate(sorted(range(6), key=edges.__getitem__)):
+                    rank[edge] = position
+                separated = min(map(operator.sub, ordered[1:], ordered[:5])) > 2.0 * tolerance
             best = -1
             if separated:  # the miss of the match by rank is that of the sorted edges
                 by_rank = sorted(range(6), key=catalog.__getitem__)
@@ -570,21 +580,21 @@ class LostInSpaceIdentifier:
                 found.append([rows[star] for star in _STAR_ORDER_LISTS[best]])
         return found
 
-    def _best_hypothesis(self, frame: _Frame, quads: np.ndarray, quad_of: np.ndarray,
-                         catalog_rows: np.ndarray | list) -> tuple | None:
-        """The verified hypothesis matching most detections among the candidates of the quads (pooled rows (q, 4)):
-        quad ``quad_of`` (k,) matched by the catalogue stars ``catalog_rows`` (k, 4) (:meth:`_candidates`), or None; a
-        hypothesis is (attitude (3, 3), the stars about it (:meth:`_nearby`), its matched detections and their
-        labelling rows)."""
-        db = self.database
-        if len(quad_of) == 0:
+    def _best_hypothesis(self, frame: _Frame, pattern_body: np.ndarray, catalog_rows: np.ndarray | list,
+                         radius2: float | np.ndarray) -> tuple | None:
+        """The verified hypothesis matching most detections among the candidates: quads of detections of body vectors
+        ``pattern_body`` (k or 1, 4, 3) matched by the catalogue stars ``catalog_rows`` (k, 4) (:meth:`_candidates`),
+        their squared match radii ``radius2``; or None.  A hypothesis is (attitude (3, 3), the stars about it
+        (:meth:`_nearby`), its matched detections and their labelling rows)."""
+        if len(catalog_rows) == 0:
             return None
-        detections = quads[quad_of]  # (k, 4)
-        pattern_body, catalog = frame.body[detections], db.unit[catalog_rows]
-        attitudes = _wahba(pattern_body[0], catalog[0])[None] if len(catalog) == 1 else wahba_svd(pattern_body, catalog)
+        catalog = self.database.unit[catalog_rows]
+        if len(catalog) == 1:
+            attitudes = _wahba(pattern_body[0], catalog[0])[None]
+        else:
+            attitudes = wahba_svd(pattern_body, catalog)
         miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
         best, best_count = None, 0
-        radius2 = frame.radius2 if isinstance(frame.radius2, float) else frame.radius2[detections]
         for attitude in attitudes[(miss <= radius2).all(axis=1)]:
             if best is not None and np.vdot(attitude, best[0]) > 3.0 - _SAME_ATTITUDE_TRACE:
                 continue  # the same solution from another pattern

@@ -589,13 +589,21 @@ class LostInSpaceIdentifier:
         if len(catalog_rows) == 0:
             return None
         catalog = self.database.unit[catalog_rows]
-        if len(catalog) == 1:
-            attitudes = _wahba(pattern_body[0], catalog[0])[None]
+        if len(catalog) == 1 and isinstance(radius2, float):  # one candidate: its pattern checked in plain numbers
+            attitude = _wahba(pattern_body[0], catalog[0])
+            (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
+            fits = all(
+                (a * x + b * y + c * z - u) ** 2 + (d * x + e * y + f * z - v) ** 2 + (g * x + h * y + i * z - w) ** 2
+                <= radius2
+                for (x, y, z), (u, v, w) in zip(catalog[0].tolist(), pattern_body[0].tolist(), strict=True)
+            )
+            attitudes = [attitude] if fits else []
         else:
             attitudes = wahba_svd(pattern_body, catalog)
-        miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
+            miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
+            attitudes = attitudes[(miss <= radius2).all(axis=1)]
         best, best_count = None, 0
-        for attitude in attitudes[(miss <= radius2).all(axis=1)]:
+        for attitude in attitudes:
             if best is not None and np.vdot(attitude, best[0]) > 3.0 - _SAME_ATTITUDE_TRACE:
                 continue  # the same solution from another pattern
             nearby = self._nearby(frame, attitude)
@@ -672,11 +680,12 @@ class LostInSpaceIdentifier:
         centres = frame.axes @ attitude
         if len(frame.chords) == 1 and frame.chords[0] <= self._grid_chord:  # the stars listed for the sky cell
             if self._grid is None:
-                self._grid = _sky_grid(self._label_tree, self._grid_reach, self._label_db)
-            offsets, listed, below = self._grid
+                offsets, listed, below = _sky_grid(self._label_tree, self._grid_reach, self._label_db)
+                self._grid = offsets, listed, self._label_unit[listed], below  # (the stars' vectors in list order)
+            offsets, listed, units, below = self._grid
             cell = _cube_cell(*centres[0].tolist())
-            rows = listed[offsets[cell] : offsets[cell + 1]]
-            return _Nearby(attitude, rows, self._label_unit[rows], below[cell], centres)
+            first, end = offsets[cell], offsets[cell + 1]
+            return _Nearby(attitude, listed[first:end], units[first:end], below[cell], centres)
         if len(frame.chords) == 1:
             found = self._label_tree.query_ball_point(centres[0], frame.chords[0], return_sorted=True)
             rows = np.array(found, dtype=np.intp)

@@ -239,13 +239,15 @@ class _Frame(NamedTuple):
 
 class _Nearby(NamedTuple):
     """The labelling stars in a frame's cones under ``attitude``: their rows (s,), ascending, so that the database
-    stars (the first ``n_db``) come first, their inertial unit vectors (s, 3) and the cones' axes (h, 3)."""
+    stars (the first ``n_db``) come first, their inertial unit vectors (s, 3), the cones' axes (h, 3) and the stars'
+    HIP numbers (s,) when at hand (None: ``rows`` give them)."""
 
     attitude: np.ndarray
     rows: np.ndarray
     unit: np.ndarray
     n_db: int
     centres: np.ndarray
+    hip: np.ndarray | None = None
 
 
 class LostInSpaceIdentifier:
@@ -365,7 +367,9 @@ class LostInSpaceIdentifier:
                     star_of = np.zeros(len(ids), dtype=np.intp)
                     star_of[detection] = star
                     detection, star = _closest_per_star(detection, star_of, dot)
-                ids[detection] = self._label_hip[nearby.rows[star]]
+                ids[detection] = (self._label_hip[nearby.rows] if nearby.hip is None else nearby.hip)[star]
+        if len(stars) == 1:
+            return [StarMeasurements(stars[0].xy.copy(), stars[0].flux.copy(), ids)]
         return with_ids(stars, ids)
 
     def _heads_of(self, cameras: list[Camera]) -> _Heads:
@@ -681,11 +685,11 @@ class LostInSpaceIdentifier:
         if len(frame.chords) == 1 and frame.chords[0] <= self._grid_chord:  # the stars listed for the sky cell
             if self._grid is None:
                 offsets, listed, below = _sky_grid(self._label_tree, self._grid_reach, self._label_db)
-                self._grid = offsets, listed, self._label_unit[listed], below  # (the stars' vectors in list order)
-            offsets, listed, units, below = self._grid
+                self._grid = offsets, listed, self._label_unit[listed], self._label_hip[listed], below  # (list order)
+            offsets, listed, units, hips, below = self._grid
             cell = _cube_cell(*centres[0].tolist())
             first, end = offsets[cell], offsets[cell + 1]
-            return _Nearby(attitude, listed[first:end], units[first:end], below[cell], centres)
+            return _Nearby(attitude, listed[first:end], units[first:end], below[cell], centres, hips[first:end])
         if len(frame.chords) == 1:
             found = self._label_tree.query_ball_point(centres[0], frame.chords[0], return_sorted=True)
             rows = np.array(found, dtype=np.intp)

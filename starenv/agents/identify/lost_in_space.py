@@ -522,18 +522,20 @@ class LostInSpaceIdentifier:
         tolerance, bins = self._tolerance, self._bins
         if ordered[0] < self._blend_rad or not self._largest_low <= largest <= self._largest_high:
             return []  # no database pattern has such edges
-        scale = tolerance / largest
+        scale, floor, digits, top = tolerance / largest, math.floor, self._digit_list, bins - 1
         base, steps = 0, [0]
-        for ratio, digit in zip([edge / largest for edge in ordered[:5]], self._digit_list, strict=True):
+        for k in range(5):  # each ratio's bin, and the one above when ratio + tolerance reaches it
+            ratio = ordered[k] / largest
             spread = (ratio + 1.0) * scale
-            low = max(math.floor((ratio - spread) * bins), 0)
-            base += low * digit
-            if min(math.floor((ratio + spread) * bins), bins - 1) > low:  # the bin above too
-                steps += [step + digit for step in steps]
+            low = floor((ratio - spread) * bins)
+            if low < 0:
+                low = 0
+            base += low * digits[k]
+            if low < top and floor((ratio + spread) * bins) > low:
+                steps += [step + digits[k] for step in steps]
         keys = [base + step for step in steps]
         bounds = db.keys.searchsorted(keys + [key + 1 for key in keys]).tolist()
-        patterns = [p for first, end in zip(bounds[: len(keys)], bounds[len(keys) :], strict=True)
-                    for p in range(first, end)]
+        patterns = list(itertools.chain.from_iterable(map(range, bounds[: len(keys)], bounds[len(keys) :])))
         if not patterns:
             return []
         patterns = [p for p, edge in zip(patterns, db.largest_edge[patterns].tolist(), strict=True)

@@ -208,13 +208,15 @@ class _Heads(NamedTuple):
     """Per-head constants of a list of cameras, made once for it: the cameras, their body -> camera matrices (None:
     the identity), for an undistorted head the matrix (3, 3) taking pixel positions ``[x, y, 1]`` (rows) to
     body-frame directions, split by :func:`_split_rows` (None: a head with distortion, which goes through
-    :meth:`~starenv.sim.optics.Camera.unproject`), match radii (rad) and body-frame boresights."""
+    :meth:`~starenv.sim.optics.Camera.unproject`), match radii (rad), body-frame boresights and, for one head, the
+    constant part of its frames (:meth:`LostInSpaceIdentifier._frame_constants`)."""
 
     cameras: tuple
     mountings: tuple
     pinholes: tuple
     radius: tuple
     axes: tuple
+    one: _Frame | None
 
 
 class _Frame(NamedTuple):
@@ -389,8 +391,27 @@ class LostInSpaceIdentifier:
             ),
             radius=tuple(self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras),
             axes=tuple(m[2].copy() for m in mountings),
+            one=None if len(cameras) != 1 else self._frame_constants(self.match_radius_px / min(cameras[0].fx,
+                                                                                                  cameras[0].fy),
+                                                                      mountings[0][2].copy()),
         )
         return heads
+
+    def _frame_constants(self, radius: float, axis: np.ndarray) -> _Frame:
+        """The frame of one head of match radius ``radius`` (rad) and boresight ``axis``, less its detections (``body``)
+        and cone (``chords``)."""
+        half_field = self.database.settings.fov_rad / 2.0
+        return _Frame(
+            body=np.zeros((0, 3)),
+            radius2=radius**2,
+            cos_radius=1.0 - 0.5 * radius**2,
+            cos_grow=1.0 - (0.5 * _GROW_MAX**2) * radius**2,
+            max_radius=radius,
+            axes=axis[None],
+            chords=[],
+            area=radius**2 / (2.0 * (1.0 - math.cos(half_field))),
+            reuse=1.0 + 2.0 * math.cos(_GROW_MAX * radius),
+        )
 
     def _frame(self, stars: list[StarMeasurements], heads: _Heads, counts: list[int]) -> _Frame:
         """The detections of one call with their match radii and search cones (see :class:`_Frame`)."""
@@ -412,14 +433,18 @@ class LostInSpaceIdentifier:
                 v /= length[:, None]
                 reaches.append(math.acos(min(1.0 / float(length.max()), 1.0)))  # cos(angle) = 1 / |ray|
                 vectors.append(v)
-        body = vectors[0] if len(vectors) == 1 else np.concatenate(vectors)
+        half_field = self.database.settings.fov_rad / 2.0
+        if len(vectors) == 1:  # one head: its frame constants made once
+            one = heads.one
+            cone = chord(max(reaches[0] + 2.0 * _GROW_MAX * one.max_radius, half_field))
+            return one._replace(body=vectors[0], chords=[cone])
+        body = np.concatenate(vectors)
         radii = {r for r, count in zip(heads.radius, counts, strict=True) if count}
         max_radius = max(radii)
         if len(radii) == 1:  # one radius for all: a number
             radius2 = max_radius**2
         else:
             radius2 = np.repeat(np.square(heads.radius), counts)
-        half_field = self.database.settings.fov_rad / 2.0
         axes, chords = [], []
         for count, axis, reach in zip(counts, heads.axes, reaches, strict=True):
             if count:

@@ -681,7 +681,8 @@ class LostInSpaceIdentifier:
             nearby = self._nearby(frame, attitude, nearby)
             dots, star, dot = self._closest(frame, attitude, nearby)
             final = _closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, dot)
-        if not same_matches(final, (matched, rows)):
+            grown = None
+        if grown is not final and not same_matches(final, (matched, rows)):  # (else the same matches)
             attitude = _wahba(body[final[0]], unit[final[1]])
             nearby = self._nearby(frame, attitude, nearby)
             dots = body @ (attitude @ nearby.unit.T)

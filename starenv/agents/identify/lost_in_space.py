@@ -28,12 +28,20 @@ Lost in space (:class:`LostInSpaceIdentifier`)
     and ``p`` the chance that a random detection lands that close to one (local catalogue density times the match
     area), the probability of a false match is ``P(X >= m - 2)`` for ``X ~ Binomial(n, p)``; hypotheses below
     ``match_threshold`` are verified.  Of the verified hypotheses of the first breadth-first step that has any, the
-    one matching most detections wins.  Matching and refining the attitude then alternate, the search widened by the
-    attitude's uncertainty (a pattern in one small field leaves the roll about it loose, which moves the stars of the
-    other heads), and every detection within the match radius of a catalogue star is labelled (one detection a star,
-    the closest; a detection with two catalogue stars within its radius is left unidentified: which one made it is a
-    guess).  Verifying and refining compare the detections with the database stars of a cone about each head's
-    boresight, by brute force (both sets are small), rather than through the k-d tree of the whole sky.
+    one matching most detections wins; when one head has four detections or more (the common case), the quads of the
+    first step are looked up one at a time instead, in plain numbers (a few quads cost less so than as arrays), and the
+    first verified one wins (two verified attitudes in one step would mean a false match).  Matching and refining the
+    attitude then alternate, the search widened by the attitude's uncertainty (a pattern in one small field leaves the
+    roll about it loose, which moves the stars of the other heads), and every detection within the labelling radius of
+    a catalogue star is labelled (one detection a star, the closest; a detection with two catalogue stars within its
+    radius is left unidentified: which one made it is a guess).  The labelling radius is the match radius, widened
+    when the scatter of the matched detections about their stars (measured under the refined attitude, on 8 pairs or
+    more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1 px of noise per axis, the 3 px default
+    alone would leave about 1 % of the stars unlabelled (``exp(-4.5)``).  Verifying, refining and labelling
+    compare the detections with the labelling stars (the database's first) of a cone about each head's boresight,
+    found once for all three, by brute force (both sets are small), rather than through a k-d tree query a detection;
+    for one head the cone's stars are those listed for the sky cell of its boresight (the sky split into cells on a
+    cube's faces, each listing the stars within a head's reach of any of its points; made on the first use).
 
 Tracking (:class:`TrackingIdentifier`, :mod:`starenv.agents.identify.tracking`)
     With a prior attitude: detections paired with the catalogue stars within a gate of their predicted positions by
@@ -50,9 +58,11 @@ from __future__ import annotations
 import bisect
 import itertools
 import math
+import operator
 from typing import NamedTuple
 
 import numpy as np
+from scipy.linalg.lapack import dgesvd
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc
@@ -75,24 +85,33 @@ from starenv.agents.identify.geometry import (
     MERGE_PX,
     ORDER_EDGES,
     STAR_ORDERS,
-    body_vectors,
     chord,
-    closest_per_star,
     resolvable,
     same_matches,
     with_ids,
 )
 from starenv.agents.solve import wahba_svd
-from starenv.sim.optics import Camera
+from starenv.sim.optics import Camera, NoDistortion
 from starenv.sim.sky import StarCatalog
 
 _SAME_ATTITUDE_TRACE = 1e-6  # 3 - trace(A B^T) below this (under 1 mrad apart): the same attitude
 _GROW_STEPS = 4  # match-and-refine rounds after a hypothesis is accepted
 _GROW_MAX = 10.0  # widest search in those rounds, in match radii
+_LABEL_SIGMAS = 4.0  # the labelling radius holds this many centroid standard deviations (as measured) ...
+_LABEL_MAX = 1.5  # ... up to this many match radii
+_SCATTER_PAIRS = 8  # detections within the match radius needed to measure the scatter
+_GRID_CELLS = 24  # sky cells along a cube face's side: the stars about a boresight are listed per cell
+_GRID_MARGIN_PX = 2.0  # margin of the cell lists beyond the heads' corners (coarsest pixels)
 _BIN_STEPS = (np.arange(32)[:, None] >> np.arange(5)) & 1  # (32, 5): step s probes the bin above for the set bits of s
 _PROBES = np.all(_BIN_STEPS[None] <= _BIN_STEPS[:, None], axis=2)  # (32, 32): [w, s] step s within the bits w
 _BITS = 1 << np.arange(5)  # bit of each ratio in a bin step
 _SIGNS = np.array([-1.0, 1.0])[:, None, None]
+_ORDER_GRAM = (4 * STAR_ORDERS[:, EDGE_FROM] + STAR_ORDERS[:, EDGE_TO]).T.copy()  # (6, 24) Gram entry of edge, order
+_EDGE_PAIRS = list(zip(EDGE_FROM.tolist(), EDGE_TO.tolist(), strict=True))
+_ORDER_EDGE_LISTS = [tuple(order) for order in ORDER_EDGES.tolist()]
+_STAR_ORDER_LISTS = STAR_ORDERS.tolist()
+_ORDER_OF_EDGES = {edges: order for order, edges in enumerate(_ORDER_EDGE_LISTS)}  # star order of an edge mapping
+_FIRST_STEP = {count: list(itertools.combinations(range(count), 4)) for count in (4, 5)}  # the quads of step one
 
 
 def _breadth_first_quads(count: int) -> list[np.ndarray]:
@@ -105,17 +124,132 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
     return steps
 
 
+def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
+    """The attitude (3, 3), inertial -> body, minimising sum |b - A r|^2 over pairs of unit vectors (n, 3): the SVD
+    solution of Wahba's problem as :func:`~starenv.agents.solve.wahba_svd`, for one set of pairs."""
+    u, _, vt, info = dgesvd(body.T @ inertial)  # LAPACK directly: numpy's wrapper costs more than the solution
+    if info != 0:
+        u, _, vt = np.linalg.svd(body.T @ inertial)
+    attitude = u @ vt
+    (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:  # a reflection: flip the last axis
+        u[:, 2] = -u[:, 2]
+        attitude = u @ vt
+    return attitude
+
+
+def _closest_per_star(rows: np.ndarray, star: np.ndarray, dot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~starenv.agents.identify.geometry.closest_per_star` with closeness as the dot product ``dot[row]`` of
+    unit vectors (the largest is the closest)."""
+    stars = star[rows]
+    if len(set(stars.tolist())) < len(stars):
+        order = np.argsort(-dot[rows], kind="stable")
+        _, first = np.unique(stars[order], return_index=True)
+        keep = np.sort(order[first])
+        rows, stars = rows[keep], stars[keep]
+    return rows, stars
+
+
+def _pinhole_rays(cam: Camera) -> np.ndarray:
+    """The matrix (3, 3) taking undistorted pixel positions ``[x, y, 1]`` (rows) to camera-frame rays
+    ``[(x - cx) / fx, (y - cy) / fy, 1]``."""
+    return np.array([[1.0 / cam.fx, 0.0, 0.0], [0.0, 1.0 / cam.fy, 0.0], [-cam.cx / cam.fx, -cam.cy / cam.fy, 1.0]])
+
+
+def _cube_cell(x: float, y: float, z: float) -> int:
+    """The sky cell of a unit vector: the cube face its largest component points to, split into ``_GRID_CELLS`` by
+    ``_GRID_CELLS`` cells along the other two components divided by that one (a gnomonic projection)."""
+    n = _GRID_CELLS
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:
+        face, largest, u, v = (0 if x > 0.0 else 1), ax, y, z
+    elif ay >= az:
+        face, largest, u, v = (2 if y > 0.0 else 3), ay, x, z
+    else:
+        face, largest, u, v = (4 if z > 0.0 else 5), az, x, y
+    i = min(int((u / largest + 1.0) * (0.5 * n)), n - 1)
+    j = min(int((v / largest + 1.0) * (0.5 * n)), n - 1)
+    return (face * n + i) * n + j
+
+
+def _sky_grid(tree: cKDTree, reach: float, first_rows: int) -> tuple[list, np.ndarray, list]:
+    """Per sky cell (:func:`_cube_cell`), the rows of the stars of ``tree`` within ``reach`` (rad) of any point of the
+    cell, ascending: (offsets of each cell's rows (cells + 1,), the rows, per cell how many are below
+    ``first_rows``)."""
+    n = _GRID_CELLS
+    ticks = np.linspace(-1.0, 1.0, n + 1)
+    u, v = np.meshgrid(ticks, ticks, indexing="ij")  # cell corners (n + 1, n + 1)
+    centres, radii = [], []
+    for face in range(6):
+        sign = 1.0 if face % 2 == 0 else -1.0
+        axis = face // 2
+        corners = np.insert(np.stack([u, v], axis=-1), axis, sign, axis=-1)  # (n + 1, n + 1, 3)
+        corners /= np.linalg.norm(corners, axis=-1, keepdims=True)
+        centre = corners[:-1, :-1] + corners[1:, :-1] + corners[:-1, 1:] + corners[1:, 1:]
+        centre /= np.linalg.norm(centre, axis=-1, keepdims=True)
+        cosines = np.stack([np.sum(centre * corners[a : a + n, b : b + n], axis=-1) for a in (0, 1) for b in (0, 1)])
+        centres.append(centre.reshape(-1, 3))
+        radii.append(np.arccos(np.clip(cosines.min(axis=0), -1.0, 1.0)).ravel())
+    centres, radii = np.concatenate(centres), np.concatenate(radii)
+    found = tree.query_ball_point(centres, 2.0 * np.sin(np.minimum(reach + radii, math.pi) / 2.0), return_sorted=True)
+    counts = np.array([len(rows) for rows in found])
+    rows = np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp, count=int(counts.sum()))
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    below = np.concatenate([[0], np.cumsum(rows < first_rows)])
+    return offsets.tolist(), rows, (below[offsets[1:]] - below[offsets[:-1]]).tolist()
+
+
+def _split_rows(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A matrix (3, 3) applied to rows ``[x, y, 1]`` as ``[x, y] @ its first two rows + its third``."""
+    return matrix[:2].copy(), matrix[2].copy()
+
+
+class _Heads(NamedTuple):
+    """Per-head constants of a list of cameras, made once for it: the cameras, their body -> camera matrices (None:
+    the identity), for an undistorted head the matrix (3, 3) taking pixel positions ``[x, y, 1]`` (rows) to
+    body-frame directions, split by :func:`_split_rows` (None: a head with distortion, which goes through
+    :meth:`~starenv.sim.optics.Camera.unproject`), match radii (rad), body-frame boresights and, for one head, the
+    constant part of its frames (:meth:`LostInSpaceIdentifier._frame_constants`)."""
+
+    cameras: tuple
+    mountings: tuple
+    pinholes: tuple
+    radius: tuple
+    axes: tuple
+    one: _Frame | None
+
+
 class _Frame(NamedTuple):
-    """The detections of one identification: pooled body-frame unit vectors (n, 3), their match radius (rad), its
-    square and largest value, and per head with detections its boresight ``axes`` (h, 3) and the chord of a cone
-    about it that holds every database star a detection can be matched to while growing a hypothesis."""
+    """The detections of one identification: pooled body-frame unit vectors (n, 3), their squared match radius (n,),
+    the smallest dot product with a star within that radius (``cos_radius``) and within ``_GROW_MAX`` radii
+    (``cos_grow``) (these three are numbers when all detections share one radius), the largest radius; per head with
+    detections its boresight ``axes`` (h, 3) and the chord of a cone about it that holds every catalogue star a
+    detection can be matched to while growing a hypothesis; ``area``: the largest match disc as a fraction of the
+    database field, ``reuse``: the smallest trace(A B^T) of two attitudes whose cones are interchangeable
+    (:meth:`LostInSpaceIdentifier._nearby`)."""
 
     body: np.ndarray
-    radius: np.ndarray
-    radius2: np.ndarray
+    radius2: float | np.ndarray
+    cos_radius: float | np.ndarray
+    cos_grow: float | np.ndarray
     max_radius: float
     axes: np.ndarray
-    chords: np.ndarray
+    chords: list
+    area: float
+    reuse: float
+
+
+class _Nearby(NamedTuple):
+    """The labelling stars in a frame's cones under ``attitude``: their rows (s,), ascending, so that the database
+    stars (the first ``n_db``) come first, their inertial unit vectors (s, 3), the cones' axes (h, 3) and the stars'
+    HIP numbers (s,) when at hand (None: ``rows`` give them)."""
+
+    attitude: np.ndarray
+    rows: np.ndarray
+    unit: np.ndarray
+    n_db: int
+    centres: np.ndarray
+    hip: np.ndarray | None = None
 
 
 class LostInSpaceIdentifier:
@@ -150,6 +284,7 @@ class LostInSpaceIdentifier:
             for step in _breadth_first_quads(self.max_pattern_stars)
         ]
         self.database: PatternDatabase | None = None
+        self._heads: _Heads | None = None
 
     def settings_for(self, cameras: list[Camera], catalog: StarCatalog) -> DatabaseSettings:
         """Database settings for these heads: the largest head's shorter field side, its coarsest plate scale; the
@@ -171,68 +306,203 @@ class LostInSpaceIdentifier:
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
         """Load (or build and cache) the pattern database for these heads and catalogue, and index the whole
         catalogue's resolvable stars: a verified attitude labels detections from all of it, not only the (brighter)
-        pattern stars."""
+        pattern stars.  The labelling stars are held with the database's match stars first, in their order, so that
+        one cone search serves verifying (the database stars) and labelling (all)."""
         settings = self.settings_for(cameras, catalog)
-        self.database = load_database(catalog, settings)
+        self.database = db = load_database(catalog, settings)
         rows = np.flatnonzero(resolvable(catalog.unit, catalog.magnitude, settings.merge_rad))
-        self._label_tree, self._label_hip = cKDTree(catalog.unit[rows]), catalog.hip[rows]
+        in_db = np.flatnonzero(catalog.magnitude <= settings.mag_limit)[db.match_rows]
+        rows = np.concatenate([in_db, rows[~np.isin(rows, in_db)]])
+        self._label_unit, self._label_hip, self._label_db = catalog.unit[rows], catalog.hip[rows], len(in_db)
+        self._label_tree = cKDTree(self._label_unit)
+        reach = max(
+            max(cam.half_diagonal + 2.0 * _GROW_MAX * self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras)
+            + _GRID_MARGIN_PX * settings.merge_rad / MERGE_PX,
+            settings.fov_rad / 2.0,
+        )
+        self._grid, self._grid_reach, self._grid_chord = None, reach, chord(reach)  # made on first use
         self._bins = settings.bins
         self._digits = np.int64(self._bins) ** np.arange(5, dtype=np.int64)  # key = bin numbers @ digits
         step_keys = _BIN_STEPS @ self._digits
         self._probe_keys = np.stack([step_keys, step_keys + 1])  # per bin step: its key offset and the next one
+        self._cos_half_field = math.cos(settings.fov_rad / 2.0)
+        self._digit_list = self._digits.tolist()
+        self._tolerance, self._blend_rad = settings.edge_tolerance_rad, settings.blend_rad
+        extent = (float(db.largest_edge.min()), float(db.largest_edge.max())) if len(db) else (math.inf, -math.inf)
+        self._largest_low, self._largest_high = extent[0] - self._tolerance, extent[1] + self._tolerance
+        self._heads = None
 
     def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
                  images: list[np.ndarray | None] | None = None) -> list[StarMeasurements]:
         """Label all heads' detections with HIP numbers (-1: unidentified); ``prior`` and ``images`` are not used."""
         if self.database is None:
             raise RuntimeError("call reset(cameras, catalog) before identify")
-        body, heads = body_vectors(stars, cameras)
-        ids = np.full(len(body), -1, dtype=np.int64)
-        if any(len(s) >= 4 for s in stars):
-            frame = self._frame(body, heads, stars, cameras)
-            attitude = self._solve(frame, stars)
-            if attitude is not None:
-                distance, nearest = self._label_tree.query(body @ attitude, k=2, distance_upper_bound=frame.max_radius)
-                alone = ((distance[:, 0] <= frame.radius) & (distance[:, 1] > frame.radius)).nonzero()[0]
-                labelled, stars_hit = closest_per_star(alone, nearest[:, 0], distance[:, 0])
-                ids[labelled] = self._label_hip[stars_hit]
+        if len(stars) != len(cameras):
+            raise ValueError(f"stars must hold one StarMeasurements per camera ({len(cameras)}), got {len(stars)}")
+        counts = [len(s) for s in stars]
+        ids = np.full(sum(counts), -1, dtype=np.int64)
+        if max(counts, default=0) >= 4:
+            frame = self._frame(stars, self._heads_of(cameras), counts)
+            solved = self._solve(frame, stars, counts)
+            if solved is not None:  # label each detection with exactly one star within its radius (one a star)
+                _, nearby, dots = solved
+                scalar = isinstance(frame.radius2, float)
+                within = dots >= (frame.cos_radius if scalar else frame.cos_radius[:, None])
+                detection, star = within.nonzero()
+                if len(detection) >= _SCATTER_PAIRS:  # the radius widened to the centroid scatter measured
+                    if scalar:  # mean squared residual (chord^2 = 2 - 2 dot), in match radii squared, per axis
+                        variance = (1.0 - float(np.vdot(dots, within)) / len(detection)) / frame.radius2
+                    else:
+                        variance = float(((1.0 - dots[detection, star]) / frame.radius2[detection]).mean())
+                    widen2 = min(_LABEL_SIGMAS**2 * variance, _LABEL_MAX**2)  # (in match radii)
+                    if widen2 > 1.0:
+                        cos_label = 1.0 - (0.5 * widen2) * (frame.radius2 if scalar else frame.radius2[:, None])
+                        detection, star = (dots >= cos_label).nonzero()
+                detections = detection.tolist()
+                if len(set(detections)) < len(detections):  # some with two or more: left out
+                    alone = np.bincount(detection, minlength=len(ids))[detection] == 1
+                    detection, star = detection[alone], star[alone]
+                stars_hit = star.tolist()
+                if len(set(stars_hit)) < len(stars_hit):  # a star with several detections keeps the closest
+                    dot = np.full(len(ids), -np.inf)
+                    dot[detection] = dots[detection, star]
+                    star_of = np.zeros(len(ids), dtype=np.intp)
+                    star_of[detection] = star
+                    detection, star = _closest_per_star(detection, star_of, dot)
+                ids[detection] = (self._label_hip[nearby.rows] if nearby.hip is None else nearby.hip)[star]
+        if len(stars) == 1:
+            return [StarMeasurements(stars[0].xy.copy(), stars[0].flux.copy(), ids)]
         return with_ids(stars, ids)
 
-    def _frame(self, body: np.ndarray, heads: np.ndarray, stars: list[StarMeasurements],
-               cameras: list[Camera]) -> _Frame:
-        """The detections of one call with their match radii and search cones (see :class:`_Frame`)."""
-        pixel_rad = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])[heads]
-        radius = self.match_radius_px * pixel_rad
-        max_radius = float(radius.max())
-        axes, chords, first = [], [], 0
-        for s, cam in zip(stars, cameras, strict=True):
-            if len(s):
-                axis = cam.mounting.as_matrix()[2]
-                reach = math.acos(min(float((body[first : first + len(s)] @ axis).min()), 1.0))
-                axes.append(axis)
-                chords.append(chord(max(reach + 2.0 * _GROW_MAX * max_radius, self.database.settings.fov_rad / 2.0)))
-            first += len(s)
-        return _Frame(body, radius, radius**2, max_radius, np.array(axes), np.array(chords))
+    def _heads_of(self, cameras: list[Camera]) -> _Heads:
+        """The per-head constants of ``cameras`` (kept for the last list of cameras seen; cameras are frozen)."""
+        heads = self._heads
+        if heads is not None and len(heads.cameras) == len(cameras) and (
+            heads.cameras[0] is cameras[0] if len(cameras) == 1 else all(map(operator.is_, heads.cameras, cameras))
+        ):
+            return heads
+        mountings = [cam.mounting.as_matrix() for cam in cameras]
+        self._heads = heads = _Heads(
+            cameras=tuple(cameras),
+            mountings=tuple(None if np.array_equal(m, IDENTITY) else m for m in mountings),
+            pinholes=tuple(
+                _split_rows(_pinhole_rays(cam) @ m) if type(cam.distortion) is NoDistortion else None
+                for cam, m in zip(cameras, mountings, strict=True)
+            ),
+            radius=tuple(self.match_radius_px / min(cam.fx, cam.fy) for cam in cameras),
+            axes=tuple(m[2].copy() for m in mountings),
+            one=None if len(cameras) != 1 else self._frame_constants(self.match_radius_px / min(cameras[0].fx,
+                                                                                                  cameras[0].fy),
+                                                                      mountings[0][2].copy()),
+        )
+        return heads
 
-    def _solve(self, frame: _Frame, stars: list[StarMeasurements]) -> np.ndarray | None:
-        """The attitude (3, 3), inertial -> body, from the verified hypothesis of the first breadth-first step that
-        has any, grown and refined (:meth:`_grow`); None if no step has one."""
-        heads, first = [], 0
-        for s in stars:  # per head, pooled rows of its brightest detections (brightest first) and their angles
-            rows = first + np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
+    def _frame_constants(self, radius: float, axis: np.ndarray) -> _Frame:
+        """The frame of one head of match radius ``radius`` (rad) and boresight ``axis``, less its detections (``body``)
+        and cone (``chords``)."""
+        half_field = self.database.settings.fov_rad / 2.0
+        return _Frame(
+            body=np.zeros((0, 3)),
+            radius2=radius**2,
+            cos_radius=1.0 - 0.5 * radius**2,
+            cos_grow=1.0 - (0.5 * _GROW_MAX**2) * radius**2,
+            max_radius=radius,
+            axes=axis[None],
+            chords=[],
+            area=radius**2 / (2.0 * (1.0 - math.cos(half_field))),
+            reuse=1.0 + 2.0 * math.cos(_GROW_MAX * radius),
+        )
+
+    def _frame(self, stars: list[StarMeasurements], heads: _Heads, counts: list[int]) -> _Frame:
+        """The detections of one call with their match radii and search cones (see :class:`_Frame`)."""
+        vectors, reaches = [], []  # per head, its body vectors and the largest angle of one from its boresight
+        for s, cam, mounting, pinhole, axis in zip(
+            stars, heads.cameras, heads.mountings, heads.pinholes, heads.axes, strict=True
+        ):
+            xy = np.asarray(s.xy, dtype=np.float64).reshape(-1, 2)
+            if not len(xy):
+                reaches.append(0.0)
+                vectors.append(np.zeros((0, 3)))
+            elif pinhole is None:
+                v = cam.unproject(xy) if mounting is None else cam.unproject(xy) @ mounting
+                reaches.append(math.acos(min(float((v @ axis).min()), 1.0)))
+                vectors.append(v)
+            else:  # the pinhole's rays [(x - cx) / fx, (y - cy) / fy, 1], rotated into the body frame, normalised
+                v = xy @ pinhole[0] + pinhole[1]
+                length = np.sqrt(np.einsum("ij,ij->i", v, v))
+                v /= length[:, None]
+                reaches.append(math.acos(min(1.0 / float(length.max()), 1.0)))  # cos(angle) = 1 / |ray|
+                vectors.append(v)
+        half_field = self.database.settings.fov_rad / 2.0
+        if len(vectors) == 1:  # one head: its frame constants made once
+            one = heads.one
+            cone = chord(max(reaches[0] + 2.0 * _GROW_MAX * one.max_radius, half_field))
+            return one._replace(body=vectors[0], chords=[cone])
+        body = np.concatenate(vectors)
+        radii = {r for r, count in zip(heads.radius, counts, strict=True) if count}
+        max_radius = max(radii)
+        if len(radii) == 1:  # one radius for all: a number
+            radius2 = max_radius**2
+        else:
+            radius2 = np.repeat(np.square(heads.radius), counts)
+        axes, chords = [], []
+        for count, axis, reach in zip(counts, heads.axes, reaches, strict=True):
+            if count:
+                axes.append(axis)
+                chords.append(chord(max(reach + 2.0 * _GROW_MAX * max_radius, half_field)))
+        return _Frame(
+            body=body,
+            radius2=radius2,
+            cos_radius=1.0 - 0.5 * radius2,
+            cos_grow=1.0 - (0.5 * _GROW_MAX**2) * radius2,
+            max_radius=max_radius,
+            axes=np.array(axes),
+            chords=chords,
+            area=max_radius**2 / (2.0 * (1.0 - math.cos(half_field))),
+            reuse=1.0 + 2.0 * math.cos(_GROW_MAX * max_radius),
+        )
+
+    def _solve(self, frame: _Frame, stars: list[StarMeasurements], counts: list[int]) -> tuple | None:
+        """(attitude (3, 3) inertial -> body, the stars about it (:class:`_Nearby`), the dot products (n, s) of the
+        detections with them) from the verified hypothesis of the first breadth-first step that has any, grown and
+        refined (:meth:`_grow`); None if no step has one."""
+        brightest, first = [], 0
+        for s, count in zip(stars, counts, strict=True):  # per head, pooled rows of its brightest detections
+            if count >= 4:  # (brightest first)
+                order = np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
+                brightest.append(order + first if first else order)
+            first += count
+        steps = self._quad_steps
+        if len(brightest) == 1:  # one head: the quads of the first step one at a time, in plain numbers
+            top = brightest[0][:5]
+            vectors = frame.body[top]
+            angles = np.arccos(np.minimum(vectors @ vectors.T, 1.0)).tolist()
+            for quad in _FIRST_STEP[len(top)]:
+                candidates = self._quad_candidates([angles[quad[i]][quad[j]] for i, j in _EDGE_PAIRS])
+                if candidates:
+                    hypothesis = self._best_hypothesis(frame, vectors[list(quad)][None], candidates, frame.radius2)
+                    if hypothesis is not None:  # (a second verified attitude in the step would be a false match)
+                        return self._grow(frame, *hypothesis)
+            steps = steps[1:]
+        heads = []
+        for rows in brightest:  # their angles
             vectors = frame.body[rows]
             heads.append((rows, np.arccos(np.minimum(vectors @ vectors.T, 1.0))))
-            first += len(s)
-        for step, (edge_from, edge_to), last in self._quad_steps:
+        for step, (edge_from, edge_to), last in steps:
             quads, edges = [], []
             for rows, angles in heads:
                 count = bisect.bisect_left(last, len(rows))  # the quads within this head's stars
-                quads.append(rows[step[:count]])
-                edges.append(angles[edge_from[:count], edge_to[:count]])
-            quads, edges = np.concatenate(quads), np.concatenate(edges)
-            if len(quads) == 0:
+                if count:
+                    quads.append(rows[step[:count]])
+                    edges.append(angles[edge_from[:count], edge_to[:count]])
+            if not quads:
                 return None
-            hypothesis = self._best_hypothesis(frame, quads, edges)
+            if len(quads) > 1:
+                quads, edges = [np.concatenate(quads)], [np.concatenate(edges)]
+            quad_of, catalog_rows = self._candidates(edges[0])
+            detections = quads[0][quad_of]  # (k, 4)
+            radius2 = frame.radius2 if isinstance(frame.radius2, float) else frame.radius2[detections]
+            hypothesis = self._best_hypothesis(frame, frame.body[detections], catalog_rows, radius2)
             if hypothesis is not None:
                 return self._grow(frame, *hypothesis)
         return None
@@ -262,98 +532,205 @@ class LostInSpaceIdentifier:
         quad_of, catalog_rows = quad_of[same_scale], db.patterns[pattern[same_scale]]
         # ... and then all six edges, under one of the 24 star orders.
         vectors = db.unit[catalog_rows]
-        catalog_edges = np.arccos(np.minimum((vectors @ vectors.transpose(0, 2, 1))[:, EDGE_FROM, EDGE_TO], 1.0))
-        miss = np.abs(catalog_edges[:, ORDER_EDGES] - edges[quad_of, None, :]).max(axis=2)  # (k, 24)
+        gram = (vectors @ vectors.transpose(0, 2, 1)).reshape(-1, 16)
+        catalog_edges = np.arccos(np.minimum(gram[:, _ORDER_GRAM], 1.0))  # (k, 6, 24): edge e under order o
+        miss = np.abs(catalog_edges - edges[quad_of, :, None]).max(axis=1)  # (k, 24)
         close = (miss.min(axis=1) <= tolerance).nonzero()[0]
         return quad_of[close], catalog_rows[close[:, None], STAR_ORDERS[miss[close].argmin(axis=1)]]
 
-    def _best_hypothesis(self, frame: _Frame, quads: np.ndarray, edges: np.ndarray) -> tuple | None:
-        """The verified hypothesis matching most detections among those of the quads (pooled rows (q, 4)) of edges
-        ``edges`` (q, 6), or None; a hypothesis is (attitude (3, 3), the database stars about it (:meth:`_nearby`),
-        its matched detections and their match rows)."""
+    def _quad_candidates(self, edges: list) -> list:
+        """:meth:`_candidates` of one quad of edges ``edges`` (six numbers, rad) in plain numbers: the catalogue star
+        rows (4,) of each matching pattern, in the quad's star order."""
         db = self.database
-        quad_of, catalog_rows = self._candidates(edges)
-        if len(quad_of) == 0:
+        ordered = sorted(edges)
+        largest = ordered[5]
+        tolerance, bins = self._tolerance, self._bins
+        if ordered[0] < self._blend_rad or not self._largest_low <= largest <= self._largest_high:
+            return []  # no database pattern has such edges
+        scale, floor, digits, top = tolerance / largest, math.floor, self._digit_list, bins - 1
+        base, steps = 0, [0]
+        for k in range(5):  # each ratio's bin, and the one above when ratio + tolerance reaches it
+            ratio = ordered[k] / largest
+            spread = (ratio + 1.0) * scale
+            low = floor((ratio - spread) * bins)
+            if low < 0:
+                low = 0
+            base += low * digits[k]
+            if low < top and floor((ratio + spread) * bins) > low:
+                steps += [step + digits[k] for step in steps]
+        keys = [base + step for step in steps]
+        bounds = db.keys.searchsorted(keys + [key + 1 for key in keys]).tolist()
+        patterns = list(itertools.chain.from_iterable(map(range, bounds[: len(keys)], bounds[len(keys) :])))
+        if not patterns:
+            return []
+        patterns = [p for p, edge in zip(patterns, db.largest_edge[patterns].tolist(), strict=True)
+                    if abs(edge - largest) <= tolerance]
+        if not patterns:
+            return []
+        # Any match keeps each edge within the tolerance of its catalogue edge, so the sorted edges too; and edges more
+        # than two tolerances apart keep their order: then the match by rank is the only one.
+        rank = None
+        found = []
+        stars = db.patterns[patterns]
+        for rows, ((ax, ay, az), (bx, by, bz), (cx, cy, cz), (dx, dy, dz)) in zip(
+            stars.tolist(), db.unit[stars].tolist(), strict=True
+        ):
+            catalog = [  # edges 01, 02, 03, 12, 13, 23
+                math.acos(min(ax * bx + ay * by + az * bz, 1.0)),
+                math.acos(min(ax * cx + ay * cy + az * cz, 1.0)),
+                math.acos(min(ax * dx + ay * dy + az * dz, 1.0)),
+                math.acos(min(bx * cx + by * cy + bz * cz, 1.0)),
+                math.acos(min(bx * dx + by * dy + bz * dz, 1.0)),
+                math.acos(min(cx * dx + cy * dy + cz * dz, 1.0)),
+            ]
+            if max(map(abs, map(operator.sub, sorted(catalog), ordered))) > tolerance:
+                continue
+            if rank is None:  # (the quad's rank of each edge, and whether its edges are apart)
+                rank = [0] * 6
+                for position, edge in enumerate(sorted(range(6), key=edges.__getitem__)):
+                    rank[edge] = position
+                separated = min(map(operator.sub, ordered[1:], ordered[:5])) > 2.0 * tolerance
+            best = -1
+            if separated:  # the miss of the match by rank is that of the sorted edges
+                by_rank = sorted(range(6), key=catalog.__getitem__)
+                best = _ORDER_OF_EDGES.get(tuple([by_rank[position] for position in rank]), -1)
+            else:  # the star order of the smallest largest edge miss, the first of equals
+                best_miss = tolerance
+                for order, order_edges in enumerate(_ORDER_EDGE_LISTS):
+                    miss = 0.0
+                    for edge, catalog_edge in zip(edges, order_edges, strict=True):
+                        difference = abs(catalog[catalog_edge] - edge)
+                        if difference > miss:
+                            miss = difference
+                            if miss > best_miss:
+                                break
+                    else:
+                        if best < 0 or miss < best_miss:
+                            best, best_miss = order, miss
+            if best >= 0:
+                found.append([rows[star] for star in _STAR_ORDER_LISTS[best]])
+        return found
+
+    def _best_hypothesis(self, frame: _Frame, pattern_body: np.ndarray, catalog_rows: np.ndarray | list,
+                         radius2: float | np.ndarray) -> tuple | None:
+        """The verified hypothesis matching most detections among the candidates: quads of detections of body vectors
+        ``pattern_body`` (k or 1, 4, 3) matched by the catalogue stars ``catalog_rows`` (k, 4) (:meth:`_candidates`),
+        their squared match radii ``radius2``; or None.  A hypothesis is (attitude (3, 3), the stars about it
+        (:meth:`_nearby`), its matched detections and their labelling rows)."""
+        if len(catalog_rows) == 0:
             return None
-        detections = quads[quad_of]  # (k, 4)
-        pattern_body, catalog = frame.body[detections], db.unit[catalog_rows]
-        attitudes = wahba_svd(pattern_body, catalog)
-        miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
-        half_field = db.settings.fov_rad / 2.0
-        area = math.pi * frame.max_radius**2 / (2.0 * math.pi * (1.0 - math.cos(half_field)))
+        catalog = self.database.unit[catalog_rows]
+        if len(catalog) == 1 and isinstance(radius2, float):  # one candidate: its pattern checked in plain numbers
+            attitude = _wahba(pattern_body[0], catalog[0])
+            (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
+            fits = all(
+                (a * x + b * y + c * z - u) ** 2 + (d * x + e * y + f * z - v) ** 2 + (g * x + h * y + i * z - w) ** 2
+                <= radius2
+                for (x, y, z), (u, v, w) in zip(catalog[0].tolist(), pattern_body[0].tolist(), strict=True)
+            )
+            attitudes = [attitude] if fits else []
+        else:
+            attitudes = wahba_svd(pattern_body, catalog)
+            miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
+            attitudes = attitudes[(miss <= radius2).all(axis=1)]
         best, best_count = None, 0
-        for attitude in attitudes[(miss <= frame.radius2[detections]).all(axis=1)]:
+        for attitude in attitudes:
             if best is not None and np.vdot(attitude, best[0]) > 3.0 - _SAME_ATTITUDE_TRACE:
                 continue  # the same solution from another pattern
             nearby = self._nearby(frame, attitude)
-            star, squared = self._closest(frame, attitude, nearby)
-            matched, rows = closest_per_star((squared <= frame.radius2).nonzero()[0], star, squared)
+            _, star, dot = self._closest(frame, attitude, nearby)
+            matched, rows = _closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, dot)
             m = len(matched)
-            if m <= best_count:
+            if m <= best_count or m < 3:
                 continue
-            in_field = ((nearby[2] @ (frame.axes @ attitude).T) >= math.cos(half_field)).sum(axis=0).max()
-            if m >= 3 and bdtrc(m - 3, len(frame.body), min(in_field * area, 1.0)) < self.match_threshold:
+            if len(nearby.centres) == 1:  # database stars in the field about each boresight, at most
+                in_field = np.count_nonzero(nearby.unit[: nearby.n_db] @ nearby.centres[0] >= self._cos_half_field)
+            else:
+                in_field = ((nearby.unit[: nearby.n_db] @ nearby.centres.T) >= self._cos_half_field).sum(axis=0).max()
+            if bdtrc(m - 3, len(frame.body), min(in_field * frame.area, 1.0)) < self.match_threshold:
                 best, best_count = (attitude, nearby, matched, rows), m
         return best
 
-    def _grow(
-        self, frame: _Frame, attitude: np.ndarray, nearby: tuple, matched: np.ndarray, rows: np.ndarray
-    ) -> np.ndarray:
-        """The attitude (3, 3), inertial -> body, refined on all matches of a verified hypothesis ``attitude``
-        (``nearby``: the database stars about it, ``matched``, ``rows``: its matches).
+    def _grow(self, frame: _Frame, attitude: np.ndarray, nearby: _Nearby, matched: np.ndarray,
+              rows: np.ndarray) -> tuple:
+        """(attitude (3, 3) inertial -> body, the stars about it, the dot products (n, s) of the detections with them),
+        the attitude refined on all matches of a verified hypothesis ``attitude`` (``nearby``: the stars about it,
+        ``matched``, ``rows``: its matches).
 
         A hypothesis from one head's pattern leaves the roll about that head poorly known, which shifts the stars of
         other heads by more than the match radius; so matching alternates with refining the attitude, each detection
         searched within its match radius widened by 3 sigma of its predicted direction under the attitude's
-        covariance (:meth:`_widened2`), until the matches stop changing.  The last matching uses the plain match
+        covariance (:meth:`_widened_cos`), until the matches stop changing.  The last matching uses the plain match
         radius.
         """
-        body, unit = frame.body, self.database.match_unit
+        body, unit = frame.body, self._label_unit
         for _ in range(_GROW_STEPS):
-            attitude = wahba_svd(body[matched], unit[rows])
+            attitude = _wahba(body[matched], unit[rows])
             nearby = self._nearby(frame, attitude, nearby)
-            star, squared = self._closest(frame, attitude, nearby)
-            within = squared <= frame.radius2
-            final = closest_per_star(within.nonzero()[0], star, squared)
+            dots, star, dot = self._closest(frame, attitude, nearby)
+            within = dot >= frame.cos_radius
+            final = _closest_per_star(within.nonzero()[0], star, dot)
             grown = final
-            if ((squared <= _GROW_MAX**2 * frame.radius2) > within).any():  # else no widened radius matters
-                grown = closest_per_star((squared <= self._widened2(frame, matched)).nonzero()[0], star, squared)
+            if ((dot >= frame.cos_grow) > within).any():  # else no widened radius matters
+                grown = _closest_per_star((dot >= self._widened_cos(frame, matched)).nonzero()[0], star, dot)
             if same_matches(grown, (matched, rows)):
                 break
             matched, rows = grown
         else:
-            attitude = wahba_svd(body[matched], unit[rows])
-            star, squared = self._closest(frame, attitude, self._nearby(frame, attitude, nearby))
-            final = closest_per_star((squared <= frame.radius2).nonzero()[0], star, squared)
-        return attitude if same_matches(final, (matched, rows)) else wahba_svd(body[final[0]], unit[final[1]])
+            attitude = _wahba(body[matched], unit[rows])
+            nearby = self._nearby(frame, attitude, nearby)
+            dots, star, dot = self._closest(frame, attitude, nearby)
+            final = _closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, dot)
+            grown = None
+        if grown is not final and not same_matches(final, (matched, rows)):  # (else the same matches)
+            attitude = _wahba(body[final[0]], unit[final[1]])
+            nearby = self._nearby(frame, attitude, nearby)
+            dots = body @ (attitude @ nearby.unit.T)
+        return attitude, nearby, dots
 
-    def _widened2(self, frame: _Frame, matched: np.ndarray) -> np.ndarray:
-        """Squared search radii (n,): each detection's match radius widened by 3 sigma of its predicted direction
-        under the covariance of an attitude fitted on the ``matched`` detections, up to ``_GROW_MAX`` match radii."""
+    def _widened_cos(self, frame: _Frame, matched: np.ndarray) -> np.ndarray:
+        """Smallest dot products (n,) within each detection's match radius widened by 3 sigma of its predicted
+        direction under the covariance of an attitude fitted on the ``matched`` detections, up to ``_GROW_MAX`` match
+        radii."""
         b = frame.body[matched]
-        weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2[matched]  # noise ** -2
-        covariance = np.linalg.inv(weight.sum() * IDENTITY - (b.T * weight) @ b)  # rad^2, about body axes
+        if isinstance(frame.radius2, float):
+            weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2  # noise ** -2
+            information = weight * (len(b) * IDENTITY - b.T @ b)
+        else:
+            weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2[matched]
+            information = weight.sum() * IDENTITY - (b.T * weight) @ b
+        covariance = np.linalg.inv(information)  # rad^2, about body axes
         spread = covariance.trace() - ((frame.body @ covariance) * frame.body).sum(axis=1)
-        return np.minimum(frame.radius2 + 9.0 * np.maximum(spread, 0.0), _GROW_MAX**2 * frame.radius2)
+        return np.maximum(frame.cos_radius - 4.5 * np.maximum(spread, 0.0), frame.cos_grow)
 
-    def _nearby(self, frame: _Frame, attitude: np.ndarray, known: tuple | None = None) -> tuple:
-        """(attitude, match rows, inertial unit vectors (s, 3)) of the database stars in ``frame``'s cones under
-        ``attitude``; ``known`` itself if it was made for an attitude within ``_GROW_MAX`` match radii of this one,
-        as it then holds every star a detection may be matched to."""
-        if known is not None and np.vdot(known[0], attitude) >= 1.0 + 2.0 * math.cos(_GROW_MAX * frame.max_radius):
+    def _nearby(self, frame: _Frame, attitude: np.ndarray, known: _Nearby | None = None) -> _Nearby:
+        """The labelling stars in ``frame``'s cones under ``attitude``; ``known`` itself if it was made for an
+        attitude within ``_GROW_MAX`` match radii of this one, as it then holds every star a detection may be matched
+        to."""
+        if known is not None and np.vdot(known.attitude, attitude) >= frame.reuse:
             return known  # trace(A B^T) = 1 + 2 cos(angle between A and B)
-        found = self.database.tree.query_ball_point(frame.axes @ attitude, frame.chords, return_sorted=False)
-        if len(found) == 1:
-            rows = np.array(found[0], dtype=np.intp)
+        centres = frame.axes @ attitude
+        if len(frame.chords) == 1 and frame.chords[0] <= self._grid_chord:  # the stars listed for the sky cell
+            if self._grid is None:
+                offsets, listed, below = _sky_grid(self._label_tree, self._grid_reach, self._label_db)
+                self._grid = offsets, listed, self._label_unit[listed], self._label_hip[listed], below  # (list order)
+            offsets, listed, units, hips, below = self._grid
+            cell = _cube_cell(*centres[0].tolist())
+            first, end = offsets[cell], offsets[cell + 1]
+            return _Nearby(attitude, listed[first:end], units[first:end], below[cell], centres, hips[first:end])
+        if len(frame.chords) == 1:
+            found = self._label_tree.query_ball_point(centres[0], frame.chords[0], return_sorted=True)
+            rows = np.array(found, dtype=np.intp)
         else:  # the cones may overlap
+            found = self._label_tree.query_ball_point(centres, frame.chords, return_sorted=False)
             rows = np.unique(np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp))
-        return attitude, rows, self.database.match_unit[rows]
+        return _Nearby(attitude, rows, self._label_unit[rows], int(rows.searchsorted(self._label_db)), centres)
 
-    def _closest(self, frame: _Frame, attitude: np.ndarray, nearby: tuple) -> tuple[np.ndarray, np.ndarray]:
-        """Per detection, the nearest database star of ``nearby`` under ``attitude`` (match row) and the squared
-        distance to it (inf when there is none)."""
-        _, rows, unit = nearby
-        if len(rows) == 0:
-            return np.zeros(len(frame.body), dtype=np.intp), np.full(len(frame.body), np.inf)
-        squared = 2.0 - 2.0 * (frame.body @ (attitude @ unit.T))  # (n, s) squared distances of unit vectors
-        return rows[squared.argmin(axis=1)], squared.min(axis=1)
+    def _closest(self, frame: _Frame, attitude: np.ndarray, nearby: _Nearby) -> tuple:
+        """The dot products (n, s) of the detections with ``nearby``'s stars under ``attitude``, and per detection the
+        nearest database star (labelling row) and the dot product with it (-inf when there is none)."""
+        dots = frame.body @ (attitude @ nearby.unit.T)
+        if nearby.n_db == 0:
+            return dots, np.zeros(len(dots), dtype=np.intp), np.full(len(dots), -np.inf)
+        on_db = dots[:, : nearby.n_db]
+        return dots, nearby.rows[on_db.argmax(axis=1)], on_db.max(axis=1)

@@ -81,13 +81,11 @@ class PatternDatabase:
     from_cache: bool
     match_rows: np.ndarray = field(init=False, repr=False)
     match_unit: np.ndarray = field(init=False, repr=False)
-    tree: cKDTree = field(init=False, repr=False)
 
     def __post_init__(self):
         rows = np.flatnonzero(resolvable(self.unit, self.magnitude, self.settings.merge_rad))
         object.__setattr__(self, "match_rows", rows)
         object.__setattr__(self, "match_unit", self.unit[rows])
-        object.__setattr__(self, "tree", cKDTree(self.match_unit))
 
     def __len__(self) -> int:
         return len(self.keys)

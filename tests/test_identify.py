@@ -568,11 +568,11 @@ def test_the_one_quad_lookup_finds_what_the_vectorised_lookup_finds(lost_in_spac
 def test_the_sky_cells_list_every_star_a_cone_about_their_points_holds(lost_in_space):
     # The stars about a boresight come from the list of its sky cell: every labelling star within the cone's reach of
     # any direction in the cell, and database stars first.
-    from starenv.agents.identify.lost_in_space import _cube_cell, _sky_grid
+    from starenv.agents.identify.lost_in_space import _cube_cell
 
     identifier = lost_in_space["narrow"]
-    tree, reach = identifier._label_tree, identifier._grid_reach
-    offsets, listed, below = _sky_grid(tree, reach, identifier._label_db)
+    tree, reach = identifier._label_tree, 2.0 * math.asin(identifier._grid_chord / 2.0)
+    offsets, listed, _, _, below = identifier._grid  # made by reset for the single head
     rng = np.random.default_rng(23)
     directions = rng.normal(size=(300, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)

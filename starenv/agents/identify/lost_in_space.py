@@ -320,7 +320,10 @@ class LostInSpaceIdentifier:
             + _GRID_MARGIN_PX * settings.merge_rad / MERGE_PX,
             settings.fov_rad / 2.0,
         )
-        self._grid, self._grid_reach, self._grid_chord = None, reach, chord(reach)  # made on first use
+        self._grid, self._grid_chord = None, chord(reach)
+        if len(cameras) == 1:  # a single head's cone: the stars listed per sky cell, made here, not at the first frame
+            offsets, listed, below = _sky_grid(self._label_tree, reach, self._label_db)
+            self._grid = offsets, listed, self._label_unit[listed], self._label_hip[listed], below  # (list order)
         self._bins = settings.bins
         self._digits = np.int64(self._bins) ** np.arange(5, dtype=np.int64)  # key = bin numbers @ digits
         step_keys = _BIN_STEPS @ self._digits
@@ -710,11 +713,8 @@ class LostInSpaceIdentifier:
         if known is not None and np.vdot(known.attitude, attitude) >= frame.reuse:
             return known  # trace(A B^T) = 1 + 2 cos(angle between A and B)
         centres = frame.axes @ attitude
-        if len(frame.chords) == 1 and frame.chords[0] <= self._grid_chord:  # the stars listed for the sky cell
-            if self._grid is None:
-                offsets, listed, below = _sky_grid(self._label_tree, self._grid_reach, self._label_db)
-                self._grid = offsets, listed, self._label_unit[listed], self._label_hip[listed], below  # (list order)
-            offsets, listed, units, hips, below = self._grid
+        if self._grid is not None and len(frame.chords) == 1 and frame.chords[0] <= self._grid_chord:
+            offsets, listed, units, hips, below = self._grid  # the stars listed for the sky cell
             cell = _cube_cell(*centres[0].tolist())
             first, end = offsets[cell], offsets[cell + 1]
             return _Nearby(attitude, listed[first:end], units[first:end], below[cell], centres, hips[first:end])

@@ -1,7 +1,9 @@
 """Samples drawn from the simulator for learning (numpy only, no torch): each reproducible alone from its scenario
 and seed.  ``spec``/``samples``/``shards``: dataset specs (TOML), per-sample generation from (spec, seed, index) and
-atomic shards on disk (``starenv dataset``); ``smear``: smeared frames with their sharp, noise-free reference
-(deblurring); ``star_fields``: centroid sets with truth ids without rendering."""
+atomic shards on disk (``starenv dataset``; kinds ``main_star``, ``centroids``, ``position_pairs``,
+``smear_pairs``); ``smear``: smeared frames with their sharp, noise-free reference (deblurring); ``pairs``:
+measured / reference position pairs (distortion); ``star_fields``: centroid sets with truth ids without
+rendering."""
 
 from starenv.datasets.samples import navigation_stars, sample
 from starenv.datasets.shards import build_dataset, read_meta, shard_path

@@ -49,7 +49,7 @@ def frame_pairs(scenario: Scenario, seed: int, index: int, centroid_noise_px: fl
                 head: int = 0) -> StarPairs:
     """The pairs of frame ``index`` over random sky of the data set ``seed`` (module docstring)."""
     rng = _rng(seed, index)
-    return _pairs(scenario, Rotation.random(random_state=rng), rng, centroid_noise_px, head)
+    return attitude_pairs(scenario, Rotation.random(random_state=rng), rng, centroid_noise_px, head)
 
 
 def orbit_pairs(scenario: Scenario, seed: int, index: int, centroid_noise_px: float = CENTROID_NOISE_PX,
@@ -58,7 +58,7 @@ def orbit_pairs(scenario: Scenario, seed: int, index: int, centroid_noise_px: fl
     ``seed``."""
     rng = _rng(seed, index)
     attitude = scenario.trajectory.attitude(index / scenario.frame_rate_hz)
-    return _pairs(scenario, attitude, rng, centroid_noise_px, head)
+    return attitude_pairs(scenario, attitude, rng, centroid_noise_px, head)
 
 
 def _rng(seed: int, index: int) -> np.random.Generator:
@@ -67,8 +67,9 @@ def _rng(seed: int, index: int) -> np.random.Generator:
     return np.random.default_rng([seed, index])
 
 
-def _pairs(scenario: Scenario, attitude: Rotation, rng: np.random.Generator, centroid_noise_px: float,
-           head: int) -> StarPairs:
+def attitude_pairs(scenario: Scenario, attitude: Rotation, rng: np.random.Generator, centroid_noise_px: float,
+                   head: int = 0) -> StarPairs:
+    """The pairs of head ``head`` at ``attitude`` (inertial -> body), measurement noise from ``rng``."""
     noise = checks.non_negative("centroid_noise_px", centroid_noise_px, unit="px")
     checks.integer("head", head, 0, len(scenario.heads) - 1)
     spec = scenario.heads[head]

@@ -22,13 +22,22 @@ import functools
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from starenv.datasets.pairs import attitude_pairs
+from starenv.datasets.smear import sharp_reference
 from starenv.datasets.spec import VARIANTS, DatasetSpec
 from starenv.sim.conventions import DEG, pointing, radec_to_unit, unit_to_radec
 from starenv.sim.sensor import StarSensor
 from starenv.sim.sky import StarCatalog, load_catalog
 
-MAIN_STAR_FIELDS = ("image", "label", "hip", "attitude", "rate_dps", "variant")
-CENTROID_FIELDS = ("xy", "catalog_id", "magnitude", "count", "attitude", "rate_dps", "variant")
+COMMON_FIELDS = ("attitude", "rate_dps", "variant")
+# per kind: the fields with one row per star (concatenated over a shard's samples, ``count`` stars each) and the
+# fields with one entry per sample (stacked)
+FIELDS = {
+    "main_star": ((), ("image", "label", "hip", *COMMON_FIELDS)),
+    "centroids": (("xy", "catalog_id", "magnitude"), ("count", *COMMON_FIELDS)),
+    "position_pairs": (("catalog_id", "measured", "distorted", "reference"), ("count", *COMMON_FIELDS)),
+    "smear_pairs": (("smeared", "sharp", "origin", "xy_mid", "catalog_id"), ("count", "exposure_s", *COMMON_FIELDS)),
+}
 
 
 @functools.lru_cache(maxsize=8)
@@ -150,15 +159,32 @@ def _edited_sky(spec: DatasetSpec, sc, params: dict, rng: np.random.Generator) -
 
 
 def sample(spec: DatasetSpec, index: int) -> dict[str, np.ndarray]:
-    """Sample ``index`` of ``spec`` as arrays (fields: ``MAIN_STAR_FIELDS`` or ``CENTROID_FIELDS``)."""
+    """Sample ``index`` of ``spec`` as arrays (fields: ``FIELDS[spec.kind]``).
+
+    ``position_pairs``: per star seen by head 0 at the drawn attitude, ``catalog_id``, ``measured`` (the true optics'
+    position plus ``pairs.centroid_noise_px`` of Gaussian noise), ``distorted`` (noise-free) and ``reference`` (the
+    calibrated camera's position of the same direction), px; no image is rendered (:mod:`starenv.datasets.pairs`).
+    ``smear_pairs``: per detectable star whose ``patches.size_px`` square patch about its mid-exposure pixel lies on
+    the frame, the patch of the smeared frame (uint16 DN) and of its sharp reference (float32 DN above bias, no
+    background: :func:`starenv.datasets.smear.sharp_reference`), the patch's ``origin`` (x, y) and the star's
+    ``xy_mid`` px.  ``attitude`` is a quaternion (x, y, z, w, inertial -> body), ``rate_dps`` head 0's camera-frame
+    rate."""
     params = draw(spec, index)
-    _, frame = render(spec, params)
-    head = frame.heads[0]
     common = {
         "attitude": params["attitude"].as_quat().astype(np.float64),
         "rate_dps": np.asarray(params["rate_cam_dps"], dtype=np.float64),
         "variant": np.int8(VARIANTS.index(params["variant"])),
     }
+    if spec.kind == "position_pairs":
+        pairs = attitude_pairs(spec.load_scenario(params["randomized"]), params["attitude"], params["rng"],
+                               spec.pairs.centroid_noise_px)
+        return {"catalog_id": pairs.catalog_id.astype(np.int64), "measured": pairs.measured,
+                "distorted": pairs.distorted, "reference": pairs.reference, "count": np.int32(len(pairs)), **common}
+    sensor, frame = render(spec, params)
+    head = frame.heads[0]
+    if spec.kind == "smear_pairs":
+        return {**_patches(head, sharp_reference(sensor, frame.t_mid), spec.patches.size_px),
+                "exposure_s": np.float64(sensor.scenario.exposure_s), **common}
     if spec.kind == "main_star":
         hip = navigation_stars(spec)[0]
         return {"image": head.image, "label": np.int32(params["main"]), "hip": np.int64(hip[params["main"]]),
@@ -167,3 +193,19 @@ def sample(spec: DatasetSpec, index: int) -> dict[str, np.ndarray]:
     keep = truth.detectable
     return {"xy": truth.xy_centroid[keep].astype(np.float64), "catalog_id": truth.catalog_id[keep].astype(np.int64),
             "magnitude": truth.magnitude[keep].astype(np.float64), "count": np.int32(keep.sum()), **common}
+
+
+def _patches(head, sharp: np.ndarray, size: int) -> dict[str, np.ndarray]:
+    """The smeared and sharp ``size`` x ``size`` patches about each detectable star of ``head`` that fit the frame."""
+    truth = head.truth
+    height, width = head.image.shape
+    origin = np.rint(truth.xy_mid).astype(np.int64) - size // 2
+    keep = truth.detectable & np.all(origin >= 0, axis=1) & (origin[:, 0] + size <= width) & (
+        origin[:, 1] + size <= height)
+    origin = origin[keep]
+    rows = origin[:, 1, None] + np.arange(size)
+    cols = origin[:, 0, None] + np.arange(size)
+    return {"smeared": head.image[rows[:, :, None], cols[:, None, :]],
+            "sharp": sharp[rows[:, :, None], cols[:, None, :]].astype(np.float32),
+            "origin": origin, "xy_mid": truth.xy_mid[keep].astype(np.float64),
+            "catalog_id": truth.catalog_id[keep].astype(np.int64), "count": np.int32(keep.sum())}

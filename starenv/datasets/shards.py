@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from starenv.datasets.samples import CENTROID_FIELDS, MAIN_STAR_FIELDS, sample
+from starenv.datasets.samples import FIELDS, sample
 from starenv.datasets.spec import FORMAT_VERSION, DatasetError, DatasetSpec, load_spec
 from starenv.files import atomic_file
 from starenv.parallel import local_executor, ray_executor
@@ -56,12 +56,9 @@ def shard_arrays(spec: DatasetSpec, shard: int) -> dict[str, np.ndarray]:
     """The arrays of shard ``shard`` (its samples generated in this process)."""
     indices = spec.shard_range(shard)
     samples = [sample(spec, i) for i in indices]
-    if spec.kind == "main_star":
-        arrays = {k: np.stack([s[k] for s in samples]) for k in MAIN_STAR_FIELDS}
-    else:
-        arrays = {k: np.concatenate([s[k] for s in samples]) for k in ("xy", "catalog_id", "magnitude")}
-        arrays["xy"] = arrays["xy"].reshape(-1, 2)
-        arrays.update({k: np.stack([s[k] for s in samples]) for k in CENTROID_FIELDS if k not in arrays})
+    per_star, per_sample = FIELDS[spec.kind]
+    arrays = {k: np.concatenate([s[k] for s in samples]) for k in per_star}  # sample j's rows: its ``count``
+    arrays.update({k: np.stack([s[k] for s in samples]) for k in per_sample})
     arrays["index"] = np.arange(indices.start, indices.stop, dtype=np.int64)
     meta = {"spec_digest": spec.digest, "starenv_version": _version(), "format_version": FORMAT_VERSION,
             "kind": spec.kind, "name": spec.name, "shard": shard, "first_index": indices.start,

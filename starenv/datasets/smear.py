@@ -39,8 +39,14 @@ def smeared_frame(scenario: Scenario, seed: int) -> SmearedFrame:
     episode_rng = np.random.default_rng(seed)  # what gymnasium seeds an env's np_random with
     sensor.reset(np.random.SeedSequence(int(episode_rng.integers(0, 2**63 - 1))))
     frame = sensor.next_frame()
-    head = scenario.heads[0]
-    sharp = sensor.renderers[0].render(scenario.trajectory, frame.t_mid - SHARP_EXPOSURE_S / 2, SHARP_EXPOSURE_S)
-    reference = sharp.signal.image() * (scenario.exposure_s / SHARP_EXPOSURE_S) / head.detector.gain_e_per_dn
     return SmearedFrame(frame.heads[0].image, frame.gyro, frame.t_mid, scenario.exposure_s,
-                        [h.calibrated for h in scenario.heads], reference)
+                        [h.calibrated for h in scenario.heads], sharp_reference(sensor, frame.t_mid))
+
+
+def sharp_reference(sensor: StarSensor, t_mid: float, head: int = 0) -> np.ndarray:
+    """Head ``head``'s scene over a vanishing exposure at ``t_mid`` (s), scaled to the sensor's exposure: the sharp,
+    noise-free star image in DN above bias, no background (float64, the frame's shape)."""
+    scenario = sensor.scenario
+    sharp = sensor.renderers[head].render(scenario.trajectory, t_mid - SHARP_EXPOSURE_S / 2, SHARP_EXPOSURE_S)
+    gain = scenario.heads[head].detector.gain_e_per_dn
+    return sharp.signal.image() * (scenario.exposure_s / SHARP_EXPOSURE_S) / gain

@@ -6,6 +6,8 @@ dotted key.  Layout (every table but the top level is optional)::
     name = "seed002_orion"
     kind = "main_star"            # "main_star": raw image + boresight star label (seed 002)
                                   # "centroids": truth centroids with HIP ids, false stars id -1 (seed 004)
+                                  # "position_pairs": measured / reference star positions (seed 003)
+                                  # "smear_pairs": smeared / still patches around each star (restoration)
     scenario = "paper_002"        # bundled name or path (relative paths: from the spec file's folder)
     samples = 16000               # sample indices 0 .. samples-1
     shard_size = 500              # samples per shard file (the last shard may be shorter)
@@ -39,6 +41,12 @@ dotted key.  Layout (every table but the top level is optional)::
     position_sigma_px = 0.0       # Gaussian shift of every star's direction, px on head 0 (whole trail)
     magnitude_sigma = 0.0         # Gaussian magnitude noise, mag
 
+    [pairs]                       # kind = "position_pairs" (no image is rendered: the frame's geometry)
+    centroid_noise_px = 0.05      # Gaussian noise of each measured position, px per axis
+
+    [patches]                     # kind = "smear_pairs"
+    size_px = 32                  # square patches centred on each detectable star's mid-exposure pixel
+
 The spec's identity (:attr:`DatasetSpec.digest`) is the SHA-256 of its validated contents, the scenario's text and
 the format version; it travels in every shard and in trained weights' manifests.
 """
@@ -56,7 +64,7 @@ from typing import Any
 from starenv import scenario as scenario_mod
 
 FORMAT_VERSION = 1
-KINDS = ("main_star", "centroids")
+KINDS = ("main_star", "centroids", "position_pairs", "smear_pairs")
 VARIANTS = ("clean", "false", "missing")
 
 
@@ -92,6 +100,16 @@ class StarsSpec:
 
 
 @dataclass(frozen=True)
+class PairsSpec:
+    centroid_noise_px: float = 0.05
+
+
+@dataclass(frozen=True)
+class PatchSpec:
+    size_px: int = 32
+
+
+@dataclass(frozen=True)
 class DatasetSpec:
     """A validated dataset spec (see the module docstring); ``scenario_text`` is the scenario file's text."""
 
@@ -107,6 +125,8 @@ class DatasetSpec:
     pointing: PointingSpec = PointingSpec()
     rates: RateSpec = RateSpec()
     stars: StarsSpec = StarsSpec()
+    pairs: PairsSpec = PairsSpec()
+    patches: PatchSpec = PatchSpec()
     source: str = "<dataset>"
 
     @property
@@ -118,9 +138,12 @@ class DatasetSpec:
         return range(shard * self.shard_size, min(self.samples, (shard + 1) * self.shard_size))
 
     def identity(self) -> dict:
-        """Everything that decides the samples' bytes (not the file it came from)."""
+        """Everything that decides the samples' bytes (not the file it came from; not the tables of other kinds)."""
         d = asdict(self)
         d.pop("source")
+        for table, kind in (("pairs", "position_pairs"), ("patches", "smear_pairs")):
+            if self.kind != kind:
+                d.pop(table)
         d["format_version"] = FORMAT_VERSION
         return d
 
@@ -270,7 +293,7 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
 
     st = top.table("stars")
     variants = st.get("variants", ["clean"])
-    if not (isinstance(variants, list) and variants and all(v in VARIANTS for v in variants)):
+    if not (isinstance(variants, list | tuple) and variants and all(v in VARIANTS for v in variants)):
         st.fail("variants", f"a non-empty list of {', '.join(map(repr, VARIANTS))}", variants)
     false_range = st.numbers("false_mag_range", [3.0, 6.0], -2.0, 14.0, length=2)
     if false_range[0] > false_range[1]:
@@ -283,9 +306,15 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
         magnitude_sigma=st.number("magnitude_sigma", 0.0, 0.0, 10.0),
     )
     st.finish()
+    pr = top.table("pairs")
+    pairs = PairsSpec(centroid_noise_px=pr.number("centroid_noise_px", 0.05, 0.0, 100.0))
+    pr.finish()
+    pa = top.table("patches")
+    patches = PatchSpec(size_px=pa.number("size_px", 32, 4, 1024, integer=True))
+    pa.finish()
     top.finish()
     spec = DatasetSpec(name, kind, scenario, scenario_text, samples, shard_size, seed, dict(overrides), randomize,
-                       pointing, rates, stars, source)
+                       pointing, rates, stars, pairs, patches, source)
     try:  # the scenario with its fixed overrides and the per-sample ones at their low ends must load
         spec.load_scenario({k: lo for k, (lo, _) in randomize.items()})
     except scenario_mod.ScenarioError as exc:

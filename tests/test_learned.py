@@ -94,6 +94,27 @@ def test_toy_task_trains_to_high_accuracy_deterministically(toy):
     assert manifest["dataset"]["content_digest"] == hashlib.sha256(shard).hexdigest()
 
 
+def test_init_starts_from_another_runs_weights(toy):
+    # the paper's second stage: a run started from the first one's weights.  With a vanishing learning rate one
+    # epoch leaves the weights where they were (BatchNorm running statistics aside), so the accuracy is the first
+    # run's from the start; a run started from scratch with the same rate stays at chance.
+    first = _run(toy, "a")
+    second = train(toy / "train", toy / "b", val=toy / "val", epochs=1, batch=32, lr=1e-12, seed=4, config_pairs=TOY,
+                   progress=False, log=lambda *_: None, init=toy / "a")
+    scratch = train(toy / "train", toy / "c", val=toy / "val", epochs=1, batch=32, lr=1e-12, seed=4, config_pairs=TOY,
+                    progress=False, log=lambda *_: None)
+    assert first["metrics"][-1]["val"]["top1"] >= 0.9 and second["metrics"][-1]["val"]["top1"] >= 0.9
+    assert scratch["metrics"][-1]["val"]["top1"] < 0.5
+    a = torch.load(toy / "a" / "weights.pt", weights_only=True)
+    b = torch.load(toy / "b" / "weights.pt", weights_only=True)
+    learned = [k for k in a if "running" not in k and "num_batches" not in k]
+    assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in learned)
+    assert second["init"]["weights_sha256"] == hashlib.sha256((toy / "a" / "weights.pt").read_bytes()).hexdigest()
+    with pytest.raises(ValueError, match="--init .*do not fit this model config"):
+        train(toy / "train", toy / "d", epochs=1, batch=32, seed=4, config_pairs=[*TOY[:-1], "mlp_dim=8"],
+              progress=False, log=lambda *_: None, init=toy / "a")
+
+
 def test_resume_replays_the_interrupted_run(toy):
     _run(toy, "full")
     _run(toy, "cut", max_minutes=0.0)  # stops after the first batch, checkpoint written

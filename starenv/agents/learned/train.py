@@ -1,7 +1,7 @@
 """``starenv train``: train seed 002's network on a ``main_star`` dataset, seeded, checkpointed and resumable.
 
     starenv train --data DATA --out RUN [--val VAL] [--epochs N] [--batch B] [--lr LR] [--seed S]
-                  [--device cpu|cuda] [--set key=value ...] [--rot90] [--max-minutes M] [--resume]
+                  [--device cpu|cuda] [--set key=value ...] [--rot90] [--max-minutes M] [--resume] [--init RUN]
 
 * Deterministic on CPU: ``torch.manual_seed(seed)``, ``torch.use_deterministic_algorithms(True)``, data read in
   this process in an order that depends only on (seed, epoch) (:class:`~starenv.agents.learned.data.ShardSampler`);
@@ -16,11 +16,15 @@
   (name, spec digest, project version), the git commit, the command and the metrics per epoch.
 * ``--set key=value`` sets a :class:`~starenv.agents.learned.seed002.Seed002Config` field (``depth=4``,
   ``widths=[8,16,16,32,32,64]``); ``n_classes`` comes from the dataset.
+* ``--init RUN`` starts from another run's weights (same config and classes; a fresh optimiser and schedule): the
+  paper's two stages, pre-training on the clean set and then training on the full one, are two runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import io
 import json
 import math
 import subprocess
@@ -94,10 +98,29 @@ def evaluate(model: Seed002Net, dataset: ShardDataset, device: str, batch: int =
     return {"top1": correct1 / n, "top5": correct5 / n, "loss": loss / n, "samples": n}
 
 
+def _initial_weights(run: str | Path, model: Seed002Net, classes, device: str) -> dict:
+    """Load ``run``/weights.pt into ``model`` (its manifest's classes must be ``classes``); the manifest's record of
+    it (path and SHA-256)."""
+    run = Path(run)
+    try:
+        manifest = json.loads((run / "manifest.json").read_text(encoding="utf-8"))
+        weights = (run / "weights.pt").read_bytes()
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"--init {run}: expected a run folder with weights.pt and manifest.json ({exc})") from exc
+    if [int(h) for h in manifest.get("classes_hip", [])] != [int(h) for h in classes]:
+        raise ValueError(f"--init {run}: its classes are not this dataset's")
+    try:
+        model.load_state_dict(torch.load(io.BytesIO(weights), weights_only=True, map_location=device))
+    except RuntimeError as exc:
+        raise ValueError(f"--init {run}: its weights do not fit this model config ({exc})") from exc
+    return {"run": str(run), "weights_sha256": hashlib.sha256(weights).hexdigest()}
+
+
 def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, epochs: int = 10, batch: int = 64,
           lr: float = 1e-3, seed: int = 0, device: str = "cpu", config_pairs: list[str] | None = None,
           rot90: bool = False, max_minutes: float | None = None, resume: bool = False,
-          checkpoint_every: int = 100, progress: bool = True, command: str | None = None, log=print) -> dict:
+          checkpoint_every: int = 100, progress: bool = True, command: str | None = None,
+          init: str | Path | None = None, log=print) -> dict:
     """Train and write ``out``/weights.pt and manifest.json; returns the manifest."""
     from tqdm import tqdm
 
@@ -121,6 +144,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = Seed002Net(config).to(device)
+    start = None if init is None else _initial_weights(init, model, classes, device)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     sampler = ShardSampler(dataset, seed)
     n_batches = len(dataset) // batch  # the last partial batch of an epoch is dropped (BatchNorm statistics)
@@ -193,6 +217,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
                     "samples": len(dataset)},
         "val_dataset": None if val_set is None else {"name": val_set.info["name"],
                                                      "spec_digest": val_set.spec_digest},
+        "init": start,
         "git_commit": _git_commit(),
         "command": command,
         "seed": seed, "epochs": epochs, "batch": batch, "lr": lr, "rot90": rot90, "device": device,
@@ -237,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much training")
     p.add_argument("--checkpoint-every", type=int, default=100, help="batches between checkpoints")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--init", default=None, metavar="RUN", help="start from RUN/weights.pt (same config and classes)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
@@ -246,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     manifest = train(args.data, args.out, val=args.val, epochs=args.epochs, batch=args.batch, lr=args.lr,
                      seed=args.seed, device=args.device, config_pairs=args.set, rot90=args.rot90,
                      max_minutes=args.max_minutes, resume=args.resume, checkpoint_every=args.checkpoint_every,
-                     progress=not args.quiet, command=command)
+                     progress=not args.quiet, command=command, init=args.init)
     print(json.dumps(manifest["metrics"][-1] if manifest["metrics"] else {}, indent=None))
     print(f"weights: {Path(args.out) / 'weights.pt'}")
     return 0

@@ -177,9 +177,7 @@ class CentroidDetector:
         saturation_dn: int | None = None,
         max_stars: int | None = None,
     ):
-        if method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-        self.method = method
+        self.method = checks.choice("method", method, METHODS)
         self.threshold_sigma = checks.in_range("threshold_sigma", threshold_sigma, 0.0, 100.0, low_open=True)
         self.psf_sigma_px = (
             None if psf_sigma_px is None else checks.in_range("psf_sigma_px", psf_sigma_px, 0.2, 20.0, unit="px")

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.checks import finite
+from starenv.checks import choice, finite
 
 # Smallest sine of the angle between two of the vectors (in each set) for the attitude to count as observable: below
 # it (0.2 arcsec) every rotation about the common direction fits almost equally well.
@@ -242,6 +242,4 @@ SOLVERS = {"quest": QuestSolver, "davenport": DavenportSolver, "svd": SvdSolver}
 
 def solver_by_name(name: str) -> QuestSolver | DavenportSolver | SvdSolver:
     """A new solver: ``"quest"``, ``"davenport"`` or ``"svd"``."""
-    if name not in SOLVERS:
-        raise ValueError(f"name must be one of {sorted(SOLVERS)}, got {name!r}")
-    return SOLVERS[name]()
+    return SOLVERS[choice("name", name, sorted(SOLVERS))]()

@@ -217,8 +217,7 @@ class LegendreCorrector:
 
     def __init__(self, order: int = ORDER, learner: str = "rls", weights: str | None = None, gate_px: float = 5.0,
                  min_stars: int = 5, fix_rotation: bool = True, learner_options: dict | None = None):
-        if learner not in LEARNERS:
-            raise ValueError(f"learner must be one of {sorted(LEARNERS)}, got {learner!r}")
+        checks.choice("learner", learner, sorted(LEARNERS))
         self.start = LegendreModel.zeros(order) if weights is None else LegendreModel.load(weights)
         self.learner_name = learner
         self.learner_options = dict(learner_options or {})

@@ -18,11 +18,17 @@ is estimated too; the state stays at six -- a choice stated here.
 
 Update, per identified star (HIP id in the catalogue): its body-frame unit vector ``b_m`` (the calibrated camera's
 ``unproject`` and mounting) against ``b_hat = A r`` of its catalogue direction ``r``: innovation ``b_m - b_hat``,
-``H = [-[b_hat x], 0]``, noise ``sigma^2 I`` with ``sigma^2 = (centroid_noise_px / f)^2 + (smear_noise_fraction *
-L)^2``: ``f`` the head's focal length in pixels, ``L = |w x b_hat| * exposure`` the star's trail during the exposure
-(rad; ``w`` the bias-corrected mean gyro rate of the step).  The smear term is an error budget, not a trail model:
-on ``paper_002`` at 5-20 deg/s the per-axis RMS centroid error of identified trails measured 0.5-0.85 % of their
-length (39-157 px), hence the 1 % default; without it a frame of 80 px trails fails the whole-frame gate.
+``H = [-[b_hat x], 0]``, noise ``R = s_c^2 I + (s_a^2 - s_c^2) t t^T`` with ``t`` the unit direction of the star's
+trail (``w x b_hat``, ``w`` the bias-corrected mean gyro rate of the step), ``L = |w x b_hat| * exposure`` its length
+(rad) and ``f`` the head's focal length in pixels: across the trail ``s_c^2 = (centroid_noise_px / f)^2 +
+(smear_noise_fraction * L)^2``, along it ``s_a^2 = s_c^2 + (along_trail_fraction * L)^2``.  The trail terms are an
+error budget, not a trail model.  A trail's centroid errs along the trail several times more than across it (the
+faint ends fall under a threshold, a neighbour or a noise peak pulls them): on ``paper_000`` at 30-75 deg/s about X
+the RMS errors of identified stars measured 2.4-3.4 % of the trail's length along it (trail fit) and 5-7 % (centre
+of gravity of the blurred frame), against 0.16-0.20 px across it (13-32 px trails); on ``paper_002`` at 5-20 deg/s
+the per-axis RMS of blurred trails measured 0.5-0.85 % of their length (39-157 px).  Hence 1 % across and 5 % along
+by default.  Weighted isotropically, the along-trail errors of stars left and right of the motion became roll errors
+of 100-200" that the filter, believing its 0.2 px, kept for frames.
 A star whose innovation's squared Mahalanobis distance exceeds ``gate`` (chi-square, 2 degrees of freedom
 -- a unit vector error has two -- at 99.9 %: 13.8) is rejected; a frame whose accepted stars' normalised innovation
 squared exceeds the 99.9 % chi-square bound of its degrees of freedom is rejected whole.  The accepted stars update
@@ -30,8 +36,13 @@ the state in one batch (Joseph form).
 
 In the pipeline the filter is the predictor (an :class:`~starenv.agents.base.AttitudeFilter`): ``predict`` carries it
 to the frame and predicts the stars; ``update`` fuses the identified stars; ``posterior`` is the action.  With no
-estimate yet, the first solved attitude initialises it (``initial_attitude_sigma_arcsec``,
-``initial_bias_sigma_deg_hr``).
+estimate yet, the first solved attitude starts it as the point the first update is linearised about, with a loose
+prior (``initial_attitude_sigma_arcsec``, 1 deg by default; ``initial_bias_sigma_deg_hr``): the solver weighs its
+stars alike, so taken as a tight prior its roll would outweigh the stars' trail-aware weights; with the loose one the
+first posterior is the weighted least-squares attitude of the first frame's stars.  After ``restart_after``
+consecutive frames rejected (whole, or every star of them) while the pipeline solved them, the filter starts again
+the same way from that frame's solution, keeping its bias estimate: a state the stars keep contradicting is not
+coasted on.
 """
 
 from __future__ import annotations
@@ -39,6 +50,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
@@ -75,14 +87,15 @@ class MekfPredictor(QuaternionPredictor):
 
     Options (the gyro's datasheet, the sensor's centroid noise, the start): ``arw_deg_rthr``, ``rrw_deg_hr_rthr``,
     ``bias_instability_deg_hr``, ``bias_correlation_s``, ``centroid_noise_px``, ``smear_noise_fraction``,
-    ``initial_attitude_sigma_arcsec``,
-    ``initial_bias_sigma_deg_hr``, ``gate`` (per-star chi-square bound), plus ``margin_px``.
+    ``along_trail_fraction``, ``initial_attitude_sigma_arcsec``, ``initial_bias_sigma_deg_hr``, ``gate`` (per-star
+    chi-square bound), ``restart_after`` (frames), plus ``margin_px``.
     """
 
     def __init__(self, arw_deg_rthr: float = 0.01, rrw_deg_hr_rthr: float = 0.005, bias_instability_deg_hr: float = 0.0,
                  bias_correlation_s: float = 300.0, centroid_noise_px: float = 0.2, smear_noise_fraction: float = 0.01,
-                 initial_attitude_sigma_arcsec: float = 60.0, initial_bias_sigma_deg_hr: float = 10.0,
-                 gate: float = STAR_GATE, margin_px: float = 0.0):
+                 along_trail_fraction: float = 0.05, initial_attitude_sigma_arcsec: float = 3600.0,
+                 initial_bias_sigma_deg_hr: float = 10.0, gate: float = STAR_GATE, restart_after: int = 3,
+                 margin_px: float = 0.0):
         super().__init__(margin_px, coning_correction=True)
         arw = checks.non_negative("arw_deg_rthr", arw_deg_rthr, unit="deg/sqrt(h)")
         rrw = checks.non_negative("rrw_deg_hr_rthr", rrw_deg_hr_rthr, unit="deg/h/sqrt(h)")
@@ -93,11 +106,14 @@ class MekfPredictor(QuaternionPredictor):
         self.sigma_u = math.sqrt((rrw * DEG / 3600.0 / 60.0) ** 2 + 2.0 * gm_sigma**2 / tau)
         self.centroid_noise_px = checks.positive("centroid_noise_px", centroid_noise_px, unit="px")
         self.smear_noise_fraction = checks.non_negative("smear_noise_fraction", smear_noise_fraction)
+        self.along_trail_fraction = checks.non_negative("along_trail_fraction", along_trail_fraction)
         self._rate, self._exposure = np.zeros(3), 0.0  # mean gyro rate (rad/s) and exposure (s) of the last step
         sigma_att = checks.positive("initial_attitude_sigma_arcsec", initial_attitude_sigma_arcsec) * ARCSEC
         sigma_bias = checks.non_negative("initial_bias_sigma_deg_hr", initial_bias_sigma_deg_hr) * DEG / 3600.0
         self.p0 = np.diag([sigma_att**2] * 3 + [sigma_bias**2] * 3)
         self.gate = checks.positive("gate", gate)
+        self.restart_after = checks.integer("restart_after", restart_after, 1, 1_000_000)
+        self._rejected_run = 0  # consecutive frames rejected whole
         self._predicted = None  # the state carried to the last prediction's time
         self.stars_used = 0
         self.stars_rejected = 0
@@ -107,6 +123,7 @@ class MekfPredictor(QuaternionPredictor):
         super().reset(cameras, catalog)
         self._predicted = None
         self._rate, self._exposure = np.zeros(3), 0.0
+        self._rejected_run = 0
 
     def predict(self, step: StepInput) -> Prediction:
         rate = np.asarray(step.gyro.rate, dtype=np.float64).reshape(-1, 3)
@@ -114,11 +131,19 @@ class MekfPredictor(QuaternionPredictor):
         self._exposure = float(step.exposure_s)
         return super().predict(step)
 
-    def star_sigma(self, camera: Camera, direction: np.ndarray, bias: np.ndarray) -> float:
-        """The 1-sigma (rad, per axis) of a star seen by ``camera`` along the body-frame unit ``direction`` during the
-        last predicted step, with the gyro bias estimate ``bias`` (rad/s) (module docstring)."""
-        trail = np.linalg.norm(np.cross(self._rate - bias, direction)) * self._exposure
-        return math.hypot(self.centroid_noise_px / min(camera.fx, camera.fy), self.smear_noise_fraction * trail)
+    def star_covariance(self, camera: Camera, direction: np.ndarray, bias: np.ndarray) -> np.ndarray:
+        """The noise covariance (3, 3; rad^2, body frame) of a star seen by ``camera`` along the body-frame unit
+        ``direction`` during the last predicted step, with the gyro bias estimate ``bias`` (rad/s): ``s_c`` across
+        its trail, ``s_a`` along it (module docstring)."""
+        motion = np.cross(self._rate - bias, direction)
+        speed = float(np.linalg.norm(motion))
+        trail = speed * self._exposure
+        cross2 = (self.centroid_noise_px / min(camera.fx, camera.fy)) ** 2 + (self.smear_noise_fraction * trail) ** 2
+        cov = cross2 * np.eye(3)
+        if speed > 0.0:
+            along = motion / speed
+            cov += (self.along_trail_fraction * trail) ** 2 * np.outer(along, along)
+        return cov
 
     # state: (attitude, seen rows, bias (3,), covariance (6, 6))
     def _propagated(self, state, delta_angles: np.ndarray, coning: np.ndarray, span: np.ndarray):
@@ -146,12 +171,21 @@ class MekfPredictor(QuaternionPredictor):
         prior = self._predicted
         self._predicted = None
         if prior is None:
-            prior = (attitude, rows, np.zeros(3), self.p0.copy())
-        attitude, _, bias, cov = prior
-        return self._measurement_update(attitude, bias, cov, stars, rows)
+            self._rejected_run = 0
+            return self._measurement_update(attitude, np.zeros(3), self.p0.copy(), stars, rows)
+        carried, _, bias, cov = prior
+        posterior = self._measurement_update(carried, bias, cov, stars, rows)
+        contradicted = self.frame_rejected or (self.stars_used == 0 and self.stars_rejected > 0)
+        self._rejected_run = self._rejected_run + 1 if contradicted else 0
+        if self._rejected_run < self.restart_after:
+            return posterior
+        self._rejected_run = 0  # start again from the solution, keeping the bias and its covariance
+        start = self.p0.copy()
+        start[3:, 3:] = cov[3:, 3:]
+        return self._measurement_update(attitude, bias, start, stars, rows)
 
     def _measurement_update(self, attitude, bias, cov, stars, rows):
-        residuals, jacobians, sigmas = [], [], []
+        residuals, jacobians, noises = [], [], []
         for cam, s in zip(self._cameras, stars, strict=True):
             ids = s.catalog_id
             known = np.flatnonzero(ids >= 0)
@@ -168,10 +202,10 @@ class MekfPredictor(QuaternionPredictor):
                 h[:, :3] = -skew(p)
                 residuals.append(m - p)
                 jacobians.append(h)
-                sigmas.append(self.star_sigma(cam, p, bias))
+                noises.append(self.star_covariance(cam, p, bias))
         accepted = []
-        for nu, h, sigma in zip(residuals, jacobians, sigmas, strict=True):
-            s_matrix = h @ cov @ h.T + sigma**2 * np.eye(3)
+        for nu, h, noise in zip(residuals, jacobians, noises, strict=True):
+            s_matrix = h @ cov @ h.T + noise
             accepted.append(float(nu @ np.linalg.solve(s_matrix, nu)) <= self.gate)
         self.stars_rejected = len(accepted) - int(np.sum(accepted))
         keep = [i for i, ok in enumerate(accepted) if ok]
@@ -179,7 +213,7 @@ class MekfPredictor(QuaternionPredictor):
         if keep:
             h = np.vstack([jacobians[i] for i in keep])
             nu = np.concatenate([residuals[i] for i in keep])
-            r = np.diag(np.repeat([sigmas[i] ** 2 for i in keep], 3))
+            r = block_diag(*[noises[i] for i in keep])
             s_matrix = h @ cov @ h.T + r
             nis = float(nu @ np.linalg.solve(s_matrix, nu))
             if nis > chi2.ppf(FRAME_CONFIDENCE, 2 * len(keep)):

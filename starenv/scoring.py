@@ -9,8 +9,10 @@ Star-level metrics use the truth of one head's frame:
 * centroid: each detection is matched one-to-one (Hungarian assignment) to a true star's intensity-weighted trail
   centroid (``xy_centroid``) within ``gate_px``; error = Euclidean distance (px).  Recall = matched detectable stars /
   detectable stars; precision = matched detections / detections.
-* identification: a claimed catalog id is correct when the star with that id lies within ``gate_px`` of its detection
-  (so either member of an unresolved double counts for the blended spot).  ID rate = correct / detectable stars;
+* identification: a claimed catalog id is correct when the trail of the star with that id (the segment from
+  ``xy_start`` to ``xy_end``; a point for a still star) passes within ``gate_px`` of its detection (so either member
+  of an unresolved double counts for the blended spot, and a smeared star placed a few pixels along its own trail
+  is that star, not a false id).  ID rate = correct / detectable stars;
   false-ID rate = wrong ids / claimed ids; the frame is solved when >= 3 ids are correct and none is wrong.
 * correction: for each detection with a correct id, the corrector's offset (measured - corrected) against the true
   offset of its star (``xy_centroid`` minus where the calibrated camera images the star's true direction,
@@ -66,6 +68,14 @@ def match(detected_xy: np.ndarray, true_xy: np.ndarray, gate_px: float = CENTROI
     return rows[ok], cols[ok], d[rows[ok], cols[ok]]
 
 
+def trail_distance(xy: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Distance (px) of each point (n, 2) from its segment ``start`` -> ``end`` (n, 2 each)."""
+    d = end - start
+    length2 = np.einsum("ij,ij->i", d, d)
+    t = np.clip(np.einsum("ij,ij->i", xy - start, d) / np.where(length2 > 0.0, length2, 1.0), 0.0, 1.0)
+    return np.linalg.norm(xy - (start + t[:, None] * d), axis=1)
+
+
 @dataclass
 class StarScores:
     """Star-level scores of one head's frame (None where the stage produced nothing to score)."""
@@ -119,7 +129,8 @@ def score_stars(
             star = np.array([rows.get(int(h), -1) for h in claimed_ids], dtype=np.intp)
             near = np.zeros(len(star), dtype=bool)
             known = star >= 0  # the claimed id is a star on this frame (none are when the frame holds no star)
-            near[known] = np.linalg.norm(detected_xy[known] - truth.xy_centroid[star[known]], axis=1) <= gate_px
+            near[known] = trail_distance(detected_xy[known], truth.xy_start[star[known]],
+                                         truth.xy_end[star[known]]) <= gate_px
             correct = claimed & known & near
             s.ids_correct = int(correct.sum())
             s.ids_wrong = int((claimed & ~correct).sum())

@@ -4,7 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from starenv.scoring import attitude_error, score_stars, summarize
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from starenv.scoring import attitude_error, score_stars, summarize, trail_distance
 from starenv.sim.conventions import ARCSEC
 from starenv.sim.render import StarTruth
 
@@ -38,6 +41,32 @@ def test_ids_claimed_on_a_frame_without_stars_are_all_wrong():
     t = truth([[10.0, 10.0]], [7])
     s = score_stars(t, np.array([[10.5, 10.0], [50.0, 60.0]]), np.array([7, 99]))  # 99 is not on this frame
     assert (s.ids_correct, s.ids_wrong) == (1, 1)
+
+
+def test_a_trail_placed_along_itself_is_still_its_star():
+    """A 20 px trail along x (centroid at its middle): a detection 6 px along the trail from the centroid and 0.5 px
+    off it is that star (its trail passes 0.5 px away); 4 px across the trail it is not, nor 4 px beyond the end."""
+    t = truth([[100.0, 100.0], [300.0, 50.0], [40.0, 400.0]], [11, 13, 14])
+    t.xy_start = t.xy_start.copy()
+    t.xy_end = t.xy_end.copy()
+    t.xy_start[0], t.xy_end[0] = [90.0, 100.0], [110.0, 100.0]
+    others = [[300.0, 50.0], [40.0, 400.0]]
+    for xy, correct in (([106.0, 100.5], True), ([100.0, 104.0], False), ([114.0, 100.0], False)):
+        s = score_stars(t, np.array([xy, *others]), np.array([11, 13, 14]))
+        assert (s.ids_correct, s.solved) == ((3, True) if correct else (2, False))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-50.0, 50.0), min_size=6, max_size=6))
+def test_trail_distance_is_the_distance_to_the_closest_point_of_the_segment(values):
+    """Against a dense sampling of the segment (2001 points: at most half a step, 1/2000 of its length, above the
+    exact distance)."""
+    xy, start, end = np.array(values).reshape(3, 1, 2)
+    points = start + np.linspace(0.0, 1.0, 2001)[:, None] * (end - start)
+    sampled = np.min(np.linalg.norm(points - xy, axis=1))
+    exact = trail_distance(xy, start, end)[0]
+    step = np.linalg.norm(end - start) / 2000
+    assert exact <= sampled + 1e-9 and sampled <= exact + step / 2 + 1e-9
 
 
 def test_matching_is_one_to_one_within_the_gate():

@@ -386,6 +386,7 @@ def test_aggregate_statistics_match_hand_computed_values(tmp_path):
     assert row["attitude_error_arcsec_p95"] == pytest.approx(4.8)  # 0.95 * 4 = 3.8 -> 4 + 0.8 * (5 - 4)
     assert row["within_threshold"] == pytest.approx(3 / 6)  # 1, 2, 3 are under 3.5 arcsec
     assert row["solved"] == pytest.approx(2 / 6)
+    assert row["fixed"] == pytest.approx(2 / 6)  # both first frames: solved and within (1 and 3 arcsec)
     assert row["id_rate_mean"] == pytest.approx((1.0 + 0.5 + 0.5) * 2 / 6)
     assert row["latency_detector_ms_median"] == 20.0
     assert row["latency_detector_ms_p95"] == pytest.approx(30.0)
@@ -399,10 +400,11 @@ def test_report_links_tables_and_plots_that_exist(tmp_path):
     links = [part.split(")")[0] for part in text.split("](")[1:]]
     assert "summary.md" in links and "summary.csv" in links
     pngs = [link for link in links if link.endswith(".png")]
-    # error, ID rate and availability vs rate for the one swept (scenario, key, axis), latency per role
+    # error, ID rate, availability and fixes vs rate for the one swept (scenario, key, axis), latency per role
     assert sorted(Path(p).name for p in pngs) == [
         "paper_000-latency.png", "paper_000-motion_rate_dps_about_1_0_0-availability.png",
-        "paper_000-motion_rate_dps_about_1_0_0-error.png", "paper_000-motion_rate_dps_about_1_0_0-id-rate.png"]
+        "paper_000-motion_rate_dps_about_1_0_0-error.png", "paper_000-motion_rate_dps_about_1_0_0-fixed.png",
+        "paper_000-motion_rate_dps_about_1_0_0-id-rate.png"]
     assert "## Working rate" in text and "### paper_000: motion.rate_dps about [1, 0, 0] (3 steps per rate)" in text
     for link in links:
         assert (tmp_path / link).exists(), link

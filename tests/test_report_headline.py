@@ -3,9 +3,10 @@
 from starenv.bench.report import headline, working_limit, working_rates
 
 
-def case(scenario, pipeline, avail, err, lat, key="", value=""):
+def case(scenario, pipeline, avail, err, lat, key="", value="", fixed=None):
+    """A summary row; its share of fixes is its availability unless given."""
     return {"scenario": scenario, "sweep_key": key, "sweep_value": value, "pipeline": pipeline, "runs": 1, "steps": 10,
-            "within_threshold": avail, "attitude_error_arcsec_median": err, "attitude_error_arcsec_p95": 2 * err,
+            "within_threshold": avail, "fixed": avail if fixed is None else fixed, "attitude_error_arcsec_median": err, "attitude_error_arcsec_p95": 2 * err,
             "latency_pipeline_ms_median": lat}
 
 
@@ -44,7 +45,19 @@ def test_working_rate_table_keeps_axes_apart_and_divides_by_the_same_pipeline_un
     cells = {line.split(" | ")[0].strip("| "): line.strip("| ").split(" | ")
              for line in text.splitlines() if line.startswith("| ") and "pipeline" not in line}
     # fit works to 10 against its unrestored twin's 5 (not against the better "filter", a different pipeline)
-    assert cells["fit"][:4] == ["fit", "yes", "10", "2.00 (blur)"]
-    assert cells["blur"][:4] == ["blur", "no", "5", "-"] and cells["filter"][2] == "10"
+    assert cells["fit"][:5] == ["fit", "yes", "10", "2.00 (blur)", "10"]
+    assert cells["blur"][:5] == ["blur", "no", "5", "-", "5"] and cells["filter"][2] == "10"
     assert text.count("### s: ") == 2  # the Y-axis sweep is its own table
     assert working_rates([case("s", "p", 1.0, 1.0, 1.0, "exposure_s", 0.01)]) == ""
+
+
+def test_a_filter_coasting_on_the_gyro_is_available_but_has_no_fix():
+    """A filter available at every rate whose frames stop giving fixes at 10 deg/s works to 5 deg/s; the coasting
+    shows in the "by availability" column only, and the cells are the shares of fixes."""
+    about = "motion.rate_dps about [1, 0, 0]"
+    rows = [case("s", "filter", 1.0, 1.0, 1.0, about, v, fixed) for v, fixed in ((0, 1.0), (5, 0.95), (10, 0.4))]
+    for r in rows:
+        r["pipeline_agents"] = r["pipeline_unrestored"] = "F"
+    assert working_limit(rows) == 5 and working_limit(rows, "within_threshold") == 10
+    line = next(x for x in working_rates(rows).splitlines() if x.startswith("| filter"))
+    assert line.strip("| ").split(" | ") == ["filter", "no", "5", "-", "10", "1", "0.95", "0.4"]

@@ -3,7 +3,9 @@
 Cases are (scenario, swept key and value, pipeline); a case pools the steps of all its seeds.  Per case:
 
 * ``availability``: fraction of steps with a valid estimate within the scenario's threshold (``within_threshold``);
-  ``solved``: fraction of steps with >= 3 correct ids and none wrong; ``id_rate``: mean ID rate over steps with
+  ``solved``: fraction of steps with >= 3 correct ids and none wrong; ``fixed``: fraction of steps both solved and
+  within the threshold -- the frame's own stars gave the attitude, where availability also counts an attitude a
+  predictor or filter carried through a frame it could not use; ``id_rate``: mean ID rate over steps with
   detectable stars; ``false_id_rate``: mean over steps with claimed ids;
 * every other metric (errors in arcsec and px, recall, precision, latencies in ms per agent role, and any metric a
   newer agent adds): median and p95 (linear interpolation) over the steps that have a value.  Attitude errors are
@@ -22,7 +24,7 @@ import numpy as np
 
 from starenv.bench.runner import LATENCY_PREFIX, read_run
 
-FRACTIONS = ("within_threshold", "available", "solved")
+FRACTIONS = ("within_threshold", "available", "solved", "fixed")
 MEANS = ("id_rate", "false_id_rate")
 SKIP = ("frame", "step")
 ROLE_NAMES = {"pipeline": "whole pipeline"}  # latency_pipeline_ms: one whole policy call
@@ -60,7 +62,7 @@ def aggregate(run_files: list[Path]) -> list[dict]:
                ident["pipeline"]["name"])
         case = cases.setdefault(key, {"ident": ident, "runs": 0, "records": []})
         case["runs"] += 1
-        case["records"].extend(steps)
+        case["records"].extend(dict(r, fixed=_fixed(r)) for r in steps)
     rows = []
     for (scenario, sweep_key, _, pipeline), case in cases.items():
         sweep = case["ident"]["sweep"] or {}
@@ -79,6 +81,14 @@ def aggregate(run_files: list[Path]) -> list[dict]:
                 row[f"{m}_p95"] = float(np.percentile(values, 95)) if len(values) else None
         rows.append(row)
     return rows
+
+
+def _fixed(record: dict) -> float | None:
+    """1.0 when a step's frame was solved and its attitude is within the threshold, 0.0 when not; None for a
+    record that carries neither score."""
+    if record.get("within_threshold") is None or record.get("solved") is None:
+        return None
+    return float(record["within_threshold"] == 1.0 and record["solved"] == 1.0)
 
 
 def _choice(pipeline: dict, without: str | None = None) -> str:
@@ -106,7 +116,7 @@ def _fmt(v) -> str:
 
 
 ACCURACY = (
-    ("availability", "within_threshold"), ("solved", "solved"), ("ID rate", "id_rate_mean"),
+    ("availability", "within_threshold"), ("solved", "solved"), ("fixed", "fixed"), ("ID rate", "id_rate_mean"),
     ("false ID", "false_id_rate_mean"),
     ("att. err. median / p95 (arcsec)", ("attitude_error_arcsec_median", "attitude_error_arcsec_p95")),
     ("cross-bore. median / p95 (arcsec)", ("cross_boresight_error_arcsec_median", "cross_boresight_error_arcsec_p95")),
@@ -166,7 +176,7 @@ def markdown_tables(rows: list[dict]) -> str:
 
 
 DODGE_MARKERS = ("o", "s", "^", "D", "v", "P")
-WORKING_AVAILABILITY = 0.9  # a swept value "works" for a pipeline when its availability reaches this
+WORKING_SHARE = 0.9  # a swept value "works" for a pipeline when this share of its steps has a fix
 
 
 def _rank(r: dict) -> tuple:
@@ -177,12 +187,13 @@ def _rank(r: dict) -> tuple:
             num(r.get("latency_pipeline_ms_median"), math.inf))
 
 
-def working_limit(rows: list[dict]) -> float | None:
-    """Largest swept value up to which (from the smallest swept value on) every value reaches
-    ``WORKING_AVAILABILITY``; None when the smallest already fails.  ``rows``: one pipeline's cases of one sweep."""
+def working_limit(rows: list[dict], share: str = "fixed") -> float | None:
+    """Largest swept value up to which (from the smallest swept value on) every value's ``share`` (``fixed``, or
+    ``within_threshold`` for availability) reaches ``WORKING_SHARE``; None when the smallest already fails.
+    ``rows``: one pipeline's cases of one sweep."""
     limit = None
     for r in sorted(rows, key=lambda r: r["sweep_value"]):
-        if (r.get("within_threshold") or 0.0) < WORKING_AVAILABILITY:
+        if (r.get(share) or 0.0) < WORKING_SHARE:
             break
         limit = r["sweep_value"]
     return limit
@@ -194,7 +205,7 @@ def headline(rows: list[dict]) -> str:
     attitude error and median pipeline latency; and per numeric sweep the working limit of each pipeline, best
     first."""
     lines = ["| scenario | best pipeline | availability | att. err. median / p95 (arcsec) | latency median (ms) "
-             f"| working up to (availability >= {WORKING_AVAILABILITY:g}) |", "|---|---|---|---|---|---|"]
+             f"| working up to (fixed >= {WORKING_SHARE:g}) |", "|---|---|---|---|---|---|"]
     for scenario in dict.fromkeys(r["scenario"] for r in rows):
         cases = [r for r in rows if r["scenario"] == scenario]
         plain = [r for r in cases if not r["sweep_key"]]
@@ -218,7 +229,8 @@ def headline(rows: list[dict]) -> str:
                      f" | {_fmt(best.get('latency_pipeline_ms_median'))} | {'; '.join(sweeps) or '-'} |")
     return ("## Headline\n\nPer scenario, its best pipeline (highest availability, then lowest median attitude "
             "error, then lowest latency) and, per swept key, how far each pipeline keeps working: the largest swept "
-            f"value up to which every value has availability >= {WORKING_AVAILABILITY:g} (none: not even the "
+            f"value up to which every value has a fix (solved, within the threshold) on >= {WORKING_SHARE:g} of "
+            "its steps (none: not even the "
             "smallest).\n\n" + "\n".join(lines) + "\n")
 
 
@@ -228,8 +240,9 @@ def _restores(rows: list[dict]) -> bool:
 
 
 def working_rates(rows: list[dict]) -> str:
-    """Per rate sweep (a ``*rate_dps`` key along an axis): each pipeline's availability at every swept rate, its
-    working rate (:func:`working_limit`) and, for a restoring pipeline, that rate over the working rate of the same
+    """Per rate sweep (a ``*rate_dps`` key along an axis): each pipeline's share of steps with a fix at every swept
+    rate, its working rate (:func:`working_limit`), the rate it reaches by availability alone (a predictor or filter
+    coasting through frames counts there) and, for a restoring pipeline, its working rate over that of the same
     pipeline without its deblurrer when the bench ran it ("x unrestored"); '' when the bench sweeps no rate."""
     out = []
     groups = dict.fromkeys((r["scenario"], r["sweep_key"]) for r in rows
@@ -242,25 +255,29 @@ def working_rates(rows: list[dict]) -> str:
         limits = {p: working_limit(c) for p, c in per.items()}
         by_agents = {c[0].get("pipeline_agents"): p for p, c in per.items() if not _restores(c)}
         steps = sorted({r["steps"] for r in cases})
-        head = ["pipeline", "restores", "working rate", "x unrestored", *(_fmt(v) for v in values)]
+        head = ["pipeline", "restores", "working rate", "x unrestored", "by availability", *(_fmt(v) for v in values)]
         lines = [f"### {scenario}: {key} ({', '.join(map(str, steps))} steps per rate)", "",
                  "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for p in sorted(per, key=lambda p: (-(limits[p] if limits[p] is not None else -1.0), p)):
-            at = {r["sweep_value"]: r.get("within_threshold") for r in per[p]}
-            lim = limits[p]
+            at = {r["sweep_value"]: r.get("fixed") for r in per[p]}
+            lim, coasting = limits[p], working_limit(per[p], "within_threshold")
             twin = by_agents.get(per[p][0].get("pipeline_unrestored")) if _restores(per[p]) else None
             base = limits.get(twin) if twin else None
             ratio = f"{lim / base:.2f} ({twin})" if lim is not None and base else "-"
             cells = [p, "yes" if _restores(per[p]) else "no", "none" if lim is None else _fmt(lim), ratio,
-                     *(_fmt(at.get(v)) for v in values)]
+                     "none" if coasting is None else _fmt(coasting), *(_fmt(at.get(v)) for v in values)]
             lines.append("| " + " | ".join(cells) + " |")
         out.append("\n".join(lines))
     if not out:
         return ""
-    return ("## Working rate\n\nAvailability (share of steps within the scenario's threshold) at each swept rate "
-            f"(deg/s); a pipeline's working rate is the largest swept rate that, with every smaller one, has "
-            f"availability >= {WORKING_AVAILABILITY:g}; \"x unrestored\": a restoring pipeline's working rate over "
-            "that of the same pipeline without its deblurrer (named).  ID rate against rate: the plots.\n\n"
+    return ("## Working rate\n\nShare of steps with a fix (the frame solved: >= 3 correct ids and none wrong, and "
+            "the attitude within the scenario's threshold) at each swept rate (deg/s); a pipeline's working rate is "
+            f"the largest swept rate that, with every smaller one, has a fix on >= {WORKING_SHARE:g} of its steps.  "
+            "\"by availability\": the same limit on the share of steps with an attitude within the threshold, "
+            "whatever gave it -- a predictor or filter carries its attitude on the gyro through frames it cannot "
+            "use, so over short runs it can stay available at rates where the frames no longer give a fix.  "
+            "\"x unrestored\": a restoring pipeline's working rate over that of the same pipeline without its "
+            "deblurrer (named).  Availability, fixes and ID rate against rate: the plots.\n\n"
             + "\n\n".join(out) + "\n")
 
 
@@ -289,6 +306,7 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
             ("error", ("attitude_error_arcsec_median", "attitude_error_arcsec_p95"), "attitude error (arcsec)", True),
             ("id-rate", ("id_rate_mean",), "ID rate (correct ids / detectable stars)", False),
             ("availability", ("within_threshold",), "availability (share of steps within the threshold)", False),
+            ("fixed", ("fixed",), "fixes (share of steps solved and within the threshold)", False),
         ):
             fig, ax = plt.subplots(figsize=(7, 4.5))
             pipelines = list(dict.fromkeys(r["pipeline"] for r in group))
@@ -318,8 +336,8 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
             ax.set_xlabel(xlabel + xlabel_note)
             ax.set_ylabel(ylabel)
             title = f"{scenario}: {ylabel.split(' (')[0]} vs {key.rsplit('.', 1)[-1]}"
-            if what == "availability":
-                ax.axhline(WORKING_AVAILABILITY, color="k", linewidth=0.8, linestyle=":")
+            if what in ("availability", "fixed"):
+                ax.axhline(WORKING_SHARE, color="k", linewidth=0.8, linestyle=":")
             ax.grid(True, which="both", alpha=0.3)
             made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, key, what)}.png")))
     by_scenario: dict[str, dict[str, dict[str, list[float]]]] = {}

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import pickle
 from dataclasses import replace
 
 import numpy as np
@@ -563,6 +564,18 @@ def test_the_one_quad_lookup_finds_what_the_vectorised_lookup_finds(lost_in_spac
         assert sorted(map(tuple, identifier._quad_candidates(edges.tolist()))) == sorted(map(tuple, rows.tolist()))
         found += len(rows) > 0
     assert found >= 60
+
+
+def test_a_reset_identifier_pickles_and_identifies_the_same(lost_in_space, catalog):
+    # Executors may ship a reset identifier to worker processes.
+    identifier = lost_in_space["wide"]
+    copy = pickle.loads(pickle.dumps(identifier))
+    rng = np.random.default_rng(24)
+    for _ in range(5):
+        stars, _ = scene([WIDE], catalog, Rotation.random(random_state=rng), rng)
+        expected = identifier.identify(stars, [WIDE])[0].catalog_id
+        assert np.array_equal(copy.identify(stars, [WIDE])[0].catalog_id, expected)
+        assert np.count_nonzero(expected >= 0) >= 4
 
 
 def test_the_sky_cells_list_every_star_a_cone_about_their_points_holds(lost_in_space):

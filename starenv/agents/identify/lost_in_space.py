@@ -353,7 +353,6 @@ class LostInSpaceIdentifier:
         self._tolerance, self._blend_rad = settings.edge_tolerance_rad, settings.blend_rad
         extent = (float(db.largest_edge.min()), float(db.largest_edge.max())) if len(db) else (math.inf, -math.inf)
         self._largest_low, self._largest_high = extent[0] - self._tolerance, extent[1] + self._tolerance
-        self._largest_edges = memoryview(np.ascontiguousarray(db.largest_edge))  # (indexed in plain numbers)
         self._heads = None
 
     def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
@@ -586,7 +585,8 @@ class LostInSpaceIdentifier:
         keys = [base + step for step in steps]
         bounds = db.keys.searchsorted(keys + [key + 1 for key in keys]).tolist()
         patterns = []  # those of these keys whose largest edge matches (a key's patterns are sorted by it)
-        edge_of, reach = self._largest_edges, tolerance + 4.0 * math.ulp(largest)  # (over the rounding; then checked)
+        edge_of = memoryview(db.largest_edge)  # (its items are plain numbers; made here: a memoryview does not pickle)
+        reach = tolerance + 4.0 * math.ulp(largest)  # (a window over the rounding, then checked)
         for first, end in zip(bounds[: len(keys)], bounds[len(keys) :], strict=True):
             if end > first:
                 first = bisect.bisect_left(edge_of, largest - reach, first, end)

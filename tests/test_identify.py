@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import pickle
 from dataclasses import replace
 
 import numpy as np
@@ -565,14 +566,26 @@ def test_the_one_quad_lookup_finds_what_the_vectorised_lookup_finds(lost_in_spac
     assert found >= 60
 
 
+def test_a_reset_identifier_pickles_and_identifies_the_same(lost_in_space, catalog):
+    # Executors may ship a reset identifier to worker processes.
+    identifier = lost_in_space["wide"]
+    copy = pickle.loads(pickle.dumps(identifier))
+    rng = np.random.default_rng(24)
+    for _ in range(5):
+        stars, _ = scene([WIDE], catalog, Rotation.random(random_state=rng), rng)
+        expected = identifier.identify(stars, [WIDE])[0].catalog_id
+        assert np.array_equal(copy.identify(stars, [WIDE])[0].catalog_id, expected)
+        assert np.count_nonzero(expected >= 0) >= 4
+
+
 def test_the_sky_cells_list_every_star_a_cone_about_their_points_holds(lost_in_space):
     # The stars about a boresight come from the list of its sky cell: every labelling star within the cone's reach of
-    # any direction in the cell, and database stars first.
+    # any direction in the cell, and database stars first; of these, at most the cell's bound within half a field.
     from starenv.agents.identify.lost_in_space import _cube_cell
 
     identifier = lost_in_space["narrow"]
     tree, reach = identifier._label_tree, 2.0 * math.asin(identifier._grid_chord / 2.0)
-    offsets, listed, _, _, below = identifier._grid  # made by reset for the single head
+    offsets, listed, units, _, below, in_field = identifier._grid  # made by reset for the single head
     rng = np.random.default_rng(23)
     directions = rng.normal(size=(300, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
@@ -583,3 +596,5 @@ def test_the_sky_cells_list_every_star_a_cone_about_their_points_holds(lost_in_s
         assert np.all(np.diff(rows) > 0)
         assert np.sum(rows < identifier._label_db) == below[cell]
         assert set(tree.query_ball_point(direction, 2.0 * math.sin(reach / 2.0))) <= set(rows.tolist())
+        database_units = units[offsets[cell] : offsets[cell] + below[cell]]  # the cell's bound on those in a field
+        assert np.count_nonzero(database_units @ direction >= identifier._cos_half_field) <= in_field[cell]

@@ -16,7 +16,7 @@ from starenv.agents.identify.geometry import chord, pattern_edges, resolvable
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog, cache_dir, load_npz_checked, save_npz_atomic
 
-METHOD_VERSION = 1  # bump when the database layout or its construction changes
+METHOD_VERSION = 2  # bump when the database layout or its construction changes
 N_SIGMA = 3.0  # edge tolerance in standard deviations of an edge's angle
 BLEND_PX = 8.0  # stars closer than this (px, coarsest head) are not used in patterns
 PATTERN_STARS_PER_FIELD = 20.0  # default database depth: stars on average in the narrowest head's field
@@ -65,9 +65,9 @@ class PatternDatabase:
 
     ``hip`` (n,), ``magnitude`` (n,) Hp and ``unit`` (n, 3) ICRS unit vectors of the stars; ``patterns`` (p, 4) rows
     into them, ``keys`` (p,) int64 sorted and ``largest_edge`` (p,) float32 the largest pairwise angle of each pattern
-    (rad).  ``path`` is the cache file and ``from_cache`` says whether it was read from it rather than built.
-    ``match_rows`` are the stars detections are matched to (none within the merge separation of a brighter star),
-    ``match_unit`` their unit vectors and ``tree`` their k-d tree.
+    (rad), ascending within a key.  ``path`` is the cache file and ``from_cache`` says whether it was read from it
+    rather than built.  ``match_rows`` are the stars detections are matched to (none within the merge separation of a
+    brighter star) and ``match_unit`` their unit vectors.
     """
 
     settings: DatabaseSettings
@@ -112,7 +112,7 @@ def _usable_for_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: Data
 
 def build_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: DatabaseSettings) -> tuple[np.ndarray, ...]:
     """Patterns (p, 4) int32 rows of ``unit``, their keys (p,) int64 and largest edges (p,) float32 rad, sorted by
-    key; see the module docstring."""
+    key and then largest edge; see the module docstring."""
     candidates = _usable_for_patterns(unit, magnitude, settings)
     per_region = settings.pattern_stars_per_region
     spacing = _LATTICE_SPACING_FRACTION * settings.fov_rad
@@ -140,8 +140,9 @@ def build_patterns(unit: np.ndarray, magnitude: np.ndarray, settings: DatabaseSe
     wide = edges[:, 5] >= settings.min_edge_rad
     quads, edges = quads[wide], edges[wide]
     keys = pattern_keys(edges[:, :5] / edges[:, 5:], settings.bins)
-    order = np.argsort(keys, kind="stable")
-    return quads[order], keys[order], edges[order, 5].astype(np.float32)
+    largest = edges[:, 5].astype(np.float32)
+    order = np.lexsort((largest, keys))
+    return quads[order], keys[order], largest[order]
 
 
 def _database_file(settings: DatabaseSettings, hip: np.ndarray, unit: np.ndarray, epoch: float) -> tuple[Path, str]:
@@ -169,6 +170,7 @@ def _read_database(file: Path, identity: str, n_stars: int) -> tuple[np.ndarray,
             and largest_edge.shape == keys.shape
             and (len(keys) == 0 or (patterns.min() >= 0 and patterns.max() < n_stars))
             and bool(np.all(keys[1:] >= keys[:-1]))
+            and bool(np.all((keys[1:] > keys[:-1]) | (largest_edge[1:] >= largest_edge[:-1])))
         )
     except (TypeError, KeyError, ValueError):
         return None

@@ -5,8 +5,8 @@ Lost in space (:class:`LostInSpaceIdentifier`)
     on Small Satellites, 2017), in the form of its successors tetra3 (ESA) and its fork cedar-solve: a pattern
     of four stars is described by the five smaller of its six pairwise angular distances divided by the largest (edge
     ratios, free of the plate scale), and each ratio is quantised into one of ``bins`` bins; the five bin numbers form
-    the pattern's key.  The database holds the keys of catalogue patterns sorted, so a lookup is a binary search
-    (the role of Tetra's open-addressing hash table).
+    the pattern's key.  The database holds the keys of catalogue patterns sorted (a key's patterns by largest edge),
+    so a lookup is a binary search (the role of Tetra's open-addressing hash table).
 
     *Database.*  Stars are the catalogue's down to ``mag_limit``; a star with another one closer than
     ``BLEND_PX`` pixels is never used in a pattern (the two would blend on the sensor).  Patterns come from tetra3's
@@ -41,7 +41,10 @@ Lost in space (:class:`LostInSpaceIdentifier`)
     compare the detections with the labelling stars (the database's first) of a cone about each head's boresight,
     found once for all three, by brute force (both sets are small), rather than through a k-d tree query a detection;
     for one head the cone's stars are those listed for the sky cell of its boresight (the sky split into cells on a
-    cube's faces, each listing the stars within a head's reach of any of its points; made on the first use).
+    cube's faces, each listing the stars within a head's reach of any of its points; made by :meth:`reset`).  A cell
+    also bounds the database stars within half a field of any of its points: verification tries ``p`` from that bound
+    first and counts the stars only when it fails (the false-match probability grows with ``p``, so what passes with
+    the bound passes with the count: the same hypotheses are verified).
 
 Tracking (:class:`TrackingIdentifier`, :mod:`starenv.agents.identify.tracking`)
     With a prior attitude: detections paired with the catalogue stars within a gate of their predicted positions by
@@ -106,12 +109,14 @@ _BIN_STEPS = (np.arange(32)[:, None] >> np.arange(5)) & 1  # (32, 5): step s pro
 _PROBES = np.all(_BIN_STEPS[None] <= _BIN_STEPS[:, None], axis=2)  # (32, 32): [w, s] step s within the bits w
 _BITS = 1 << np.arange(5)  # bit of each ratio in a bin step
 _SIGNS = np.array([-1.0, 1.0])[:, None, None]
+_ONES = np.ones(3)
 _ORDER_GRAM = (4 * STAR_ORDERS[:, EDGE_FROM] + STAR_ORDERS[:, EDGE_TO]).T.copy()  # (6, 24) Gram entry of edge, order
 _EDGE_PAIRS = list(zip(EDGE_FROM.tolist(), EDGE_TO.tolist(), strict=True))
-_ORDER_EDGE_LISTS = [tuple(order) for order in ORDER_EDGES.tolist()]
 _STAR_ORDER_LISTS = STAR_ORDERS.tolist()
-_ORDER_OF_EDGES = {edges: order for order, edges in enumerate(_ORDER_EDGE_LISTS)}  # star order of an edge mapping
-_FIRST_STEP = {count: list(itertools.combinations(range(count), 4)) for count in (4, 5)}  # the quads of step one
+_ORDER_OF_EDGES = {tuple(edges): order for order, edges in enumerate(ORDER_EDGES.tolist())}  # star order of an edge map
+_FIRST_STEP = {  # the quads of step one, and each as an index (1, 4)
+    count: [(quad, np.array([quad])) for quad in itertools.combinations(range(count), 4)] for count in (4, 5)
+}
 
 
 def _breadth_first_quads(count: int) -> list[np.ndarray]:
@@ -127,15 +132,21 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
 def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
     """The attitude (3, 3), inertial -> body, minimising sum |b - A r|^2 over pairs of unit vectors (n, 3): the SVD
     solution of Wahba's problem as :func:`~starenv.agents.solve.wahba_svd`, for one set of pairs."""
-    u, _, vt, info = dgesvd(body.T @ inertial)  # LAPACK directly: numpy's wrapper costs more than the solution
+    u, _, vt, info = dgesvd(body.T.dot(inertial))  # LAPACK directly: numpy's wrapper costs more than the solution
     if info != 0:
         u, _, vt = np.linalg.svd(body.T @ inertial)
-    attitude = u @ vt
+    attitude = u.dot(vt)
     (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
     if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:  # a reflection: flip the last axis
         u[:, 2] = -u[:, 2]
         attitude = u @ vt
     return attitude
+
+
+def _pairs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``mask.nonzero()`` of a 2-d mask (rows and columns of its true entries, row-major), from the flat indices:
+    numpy's 2-d nonzero costs several times more on small arrays."""
+    return np.divmod(mask.ravel().nonzero()[0], mask.shape[1])
 
 
 def _closest_per_star(rows: np.ndarray, star: np.ndarray, dot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -172,10 +183,11 @@ def _cube_cell(x: float, y: float, z: float) -> int:
     return (face * n + i) * n + j
 
 
-def _sky_grid(tree: cKDTree, reach: float, first_rows: int) -> tuple[list, np.ndarray, list]:
-    """Per sky cell (:func:`_cube_cell`), the rows of the stars of ``tree`` within ``reach`` (rad) of any point of the
-    cell, ascending: (offsets of each cell's rows (cells + 1,), the rows, per cell how many are below
-    ``first_rows``)."""
+def _sky_grid(tree: cKDTree, reach: float, first_rows: int, half_field: float) -> tuple[list, np.ndarray, list, list]:
+    """Per sky cell (:func:`_cube_cell`), the rows of the stars of ``tree`` within ``reach`` (rad, at least
+    ``half_field``) of any point of the cell, ascending: (offsets of each cell's rows (cells + 1,), the rows, per cell
+    how many are below ``first_rows``, per cell at most how many of those lie within ``half_field`` of one of its
+    points)."""
     n = _GRID_CELLS
     ticks = np.linspace(-1.0, 1.0, n + 1)
     u, v = np.meshgrid(ticks, ticks, indexing="ij")  # cell corners (n + 1, n + 1)
@@ -196,7 +208,13 @@ def _sky_grid(tree: cKDTree, reach: float, first_rows: int) -> tuple[list, np.nd
     rows = np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp, count=int(counts.sum()))
     offsets = np.concatenate([[0], np.cumsum(counts)])
     below = np.concatenate([[0], np.cumsum(rows < first_rows)])
-    return offsets.tolist(), rows, (below[offsets[1:]] - below[offsets[:-1]]).tolist()
+    # Within half a field of a point of the cell: within that plus the cell's radius of its centre (a little more).
+    cell = np.repeat(np.arange(len(counts)), counts)
+    first = (rows < first_rows).nonzero()[0]
+    cos_reach = np.cos(np.minimum(half_field + radii, math.pi))[cell[first]] - 1e-9
+    near = np.einsum("ij,ij->i", tree.data[rows[first]], centres[cell[first]]) >= cos_reach
+    in_field = np.bincount(cell[first[near]], minlength=len(counts))
+    return offsets.tolist(), rows, (below[offsets[1:]] - below[offsets[:-1]]).tolist(), in_field.tolist()
 
 
 def _split_rows(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -241,8 +259,9 @@ class _Frame(NamedTuple):
 
 class _Nearby(NamedTuple):
     """The labelling stars in a frame's cones under ``attitude``: their rows (s,), ascending, so that the database
-    stars (the first ``n_db``) come first, their inertial unit vectors (s, 3), the cones' axes (h, 3) and the stars'
-    HIP numbers (s,) when at hand (None: ``rows`` give them)."""
+    stars (the first ``n_db``) come first, their inertial unit vectors (s, 3), the cones' axes (h, 3), the stars'
+    HIP numbers (s,) when at hand (None: ``rows`` give them) and, from the sky cell of one cone, at most how many
+    database stars lie within half a field of its axis (None: not known)."""
 
     attitude: np.ndarray
     rows: np.ndarray
@@ -250,6 +269,7 @@ class _Nearby(NamedTuple):
     n_db: int
     centres: np.ndarray
     hip: np.ndarray | None = None
+    in_field: int | None = None
 
 
 class LostInSpaceIdentifier:
@@ -322,8 +342,8 @@ class LostInSpaceIdentifier:
         )
         self._grid, self._grid_chord = None, chord(reach)
         if len(cameras) == 1:  # a single head's cone: the stars listed per sky cell, made here, not at the first frame
-            offsets, listed, below = _sky_grid(self._label_tree, reach, self._label_db)
-            self._grid = offsets, listed, self._label_unit[listed], self._label_hip[listed], below  # (list order)
+            offsets, listed, below, in_field = _sky_grid(self._label_tree, reach, self._label_db, settings.fov_rad / 2)
+            self._grid = offsets, listed, self._label_unit[listed], self._label_hip[listed], below, in_field
         self._bins = settings.bins
         self._digits = np.int64(self._bins) ** np.arange(5, dtype=np.int64)  # key = bin numbers @ digits
         step_keys = _BIN_STEPS @ self._digits
@@ -351,7 +371,7 @@ class LostInSpaceIdentifier:
                 _, nearby, dots = solved
                 scalar = isinstance(frame.radius2, float)
                 within = dots >= (frame.cos_radius if scalar else frame.cos_radius[:, None])
-                detection, star = within.nonzero()
+                detection, star = _pairs(within)
                 if len(detection) >= _SCATTER_PAIRS:  # the radius widened to the centroid scatter measured
                     if scalar:  # mean squared residual (chord^2 = 2 - 2 dot), in match radii squared, per axis
                         variance = (1.0 - float(np.vdot(dots, within)) / len(detection)) / frame.radius2
@@ -360,7 +380,7 @@ class LostInSpaceIdentifier:
                     widen2 = min(_LABEL_SIGMAS**2 * variance, _LABEL_MAX**2)  # (in match radii)
                     if widen2 > 1.0:
                         cos_label = 1.0 - (0.5 * widen2) * (frame.radius2 if scalar else frame.radius2[:, None])
-                        detection, star = (dots >= cos_label).nonzero()
+                        detection, star = _pairs(dots >= cos_label)
                 detections = detection.tolist()
                 if len(set(detections)) < len(detections):  # some with two or more: left out
                     alone = np.bincount(detection, minlength=len(ids))[detection] == 1
@@ -431,8 +451,9 @@ class LostInSpaceIdentifier:
                 reaches.append(math.acos(min(float((v @ axis).min()), 1.0)))
                 vectors.append(v)
             else:  # the pinhole's rays [(x - cx) / fx, (y - cy) / fy, 1], rotated into the body frame, normalised
-                v = xy @ pinhole[0] + pinhole[1]
-                length = np.sqrt(np.einsum("ij,ij->i", v, v))
+                v = xy.dot(pinhole[0])  # (ndarray.dot: less overhead than @ on small arrays)
+                v += pinhole[1]
+                length = np.sqrt((v * v).dot(_ONES))
                 v /= length[:, None]
                 reaches.append(math.acos(min(1.0 / float(length.max()), 1.0)))  # cos(angle) = 1 / |ray|
                 vectors.append(v)
@@ -479,11 +500,11 @@ class LostInSpaceIdentifier:
         if len(brightest) == 1:  # one head: the quads of the first step one at a time, in plain numbers
             top = brightest[0][:5]
             vectors = frame.body[top]
-            angles = np.arccos(np.minimum(vectors @ vectors.T, 1.0)).tolist()
-            for quad in _FIRST_STEP[len(top)]:
+            angles = np.arccos(np.minimum(vectors.dot(vectors.T), 1.0)).tolist()
+            for quad, index in _FIRST_STEP[len(top)]:
                 candidates = self._quad_candidates([angles[quad[i]][quad[j]] for i, j in _EDGE_PAIRS])
                 if candidates:
-                    hypothesis = self._best_hypothesis(frame, vectors[list(quad)][None], candidates, frame.radius2)
+                    hypothesis = self._best_hypothesis(frame, vectors[index], candidates, frame.radius2)
                     if hypothesis is not None:  # (a second verified attitude in the step would be a false match)
                         return self._grow(frame, *hypothesis)
             steps = steps[1:]
@@ -522,7 +543,7 @@ class LostInSpaceIdentifier:
         bounds = np.floor((ratios + _SIGNS * ((ratios + 1.0) * (tolerance / largest))) * bins)  # bins of ratio -+ tol
         low = np.maximum(bounds[0], 0.0)
         probed = _PROBES[(np.minimum(bounds[1], bins - 1.0) > low) @ _BITS]  # (q, 32) bin steps probed
-        owner, step = (probed & (ordered[:, :1] >= settings.blend_rad)).nonzero()
+        owner, step = _pairs(probed & (ordered[:, :1] >= settings.blend_rad))
         first, end = db.keys.searchsorted((low.astype(np.int64) @ self._digits)[owner] + self._probe_keys[:, step])
         count = end - first
         total = count.sum()
@@ -563,11 +584,14 @@ class LostInSpaceIdentifier:
                 steps += [step + digits[k] for step in steps]
         keys = [base + step for step in steps]
         bounds = db.keys.searchsorted(keys + [key + 1 for key in keys]).tolist()
-        patterns = list(itertools.chain.from_iterable(map(range, bounds[: len(keys)], bounds[len(keys) :])))
-        if not patterns:
-            return []
-        patterns = [p for p, edge in zip(patterns, db.largest_edge[patterns].tolist(), strict=True)
-                    if abs(edge - largest) <= tolerance]
+        patterns = []  # those of these keys whose largest edge matches (a key's patterns are sorted by it)
+        edge_of = memoryview(db.largest_edge)  # (its items are plain numbers; made here: a memoryview does not pickle)
+        reach = tolerance + 4.0 * math.ulp(largest)  # (a window over the rounding, then checked)
+        for first, end in zip(bounds[: len(keys)], bounds[len(keys) :], strict=True):
+            if end > first:
+                first = bisect.bisect_left(edge_of, largest - reach, first, end)
+                end = bisect.bisect_right(edge_of, largest + reach, first, end)
+                patterns += [p for p in range(first, end) if abs(edge_of[p] - largest) <= tolerance]
         if not patterns:
             return []
         # Any match keeps each edge within the tolerance of its catalogue edge, so the sorted edges too; and edges more
@@ -593,23 +617,14 @@ class LostInSpaceIdentifier:
                 for position, edge in enumerate(sorted(range(6), key=edges.__getitem__)):
                     rank[edge] = position
                 separated = min(map(operator.sub, ordered[1:], ordered[:5])) > 2.0 * tolerance
-            best = -1
             if separated:  # the miss of the match by rank is that of the sorted edges
                 by_rank = sorted(range(6), key=catalog.__getitem__)
                 best = _ORDER_OF_EDGES.get(tuple([by_rank[position] for position in rank]), -1)
             else:  # the star order of the smallest largest edge miss, the first of equals
-                best_miss = tolerance
-                for order, order_edges in enumerate(_ORDER_EDGE_LISTS):
-                    miss = 0.0
-                    for edge, catalog_edge in zip(edges, order_edges, strict=True):
-                        difference = abs(catalog[catalog_edge] - edge)
-                        if difference > miss:
-                            miss = difference
-                            if miss > best_miss:
-                                break
-                    else:
-                        if best < 0 or miss < best_miss:
-                            best, best_miss = order, miss
+                miss = np.abs(np.array(catalog)[ORDER_EDGES] - edges).max(axis=1)
+                best = int(miss.argmin())
+                if miss[best] > tolerance:
+                    best = -1
             if best >= 0:
                 found.append([rows[star] for star in _STAR_ORDER_LISTS[best]])
         return found
@@ -617,21 +632,24 @@ class LostInSpaceIdentifier:
     def _best_hypothesis(self, frame: _Frame, pattern_body: np.ndarray, catalog_rows: np.ndarray | list,
                          radius2: float | np.ndarray) -> tuple | None:
         """The verified hypothesis matching most detections among the candidates: quads of detections of body vectors
-        ``pattern_body`` (k or 1, 4, 3) matched by the catalogue stars ``catalog_rows`` (k, 4) (:meth:`_candidates`),
+        ``pattern_body`` (k, 4, 3, or 1, 4, 3: one quad) matched by the catalogue stars ``catalog_rows`` (k, 4),
         their squared match radii ``radius2``; or None.  A hypothesis is (attitude (3, 3), the stars about it
         (:meth:`_nearby`), its matched detections and their labelling rows)."""
         if len(catalog_rows) == 0:
             return None
         catalog = self.database.unit[catalog_rows]
-        if len(catalog) == 1 and isinstance(radius2, float):  # one candidate: its pattern checked in plain numbers
-            attitude = _wahba(pattern_body[0], catalog[0])
-            (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
-            fits = all(
-                (a * x + b * y + c * z - u) ** 2 + (d * x + e * y + f * z - v) ** 2 + (g * x + h * y + i * z - w) ** 2
-                <= radius2
-                for (x, y, z), (u, v, w) in zip(catalog[0].tolist(), pattern_body[0].tolist(), strict=True)
-            )
-            attitudes = [attitude] if fits else []
+        if len(pattern_body) == 1 and isinstance(radius2, float):  # one quad: each candidate checked in plain numbers
+            body, attitudes = pattern_body[0], []
+            body_list = body.tolist()
+            for inertial in catalog:
+                attitude = _wahba(body, inertial)
+                (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
+                if all(  # every star within its match radius
+                    (a * x + b * y + c * z - u) ** 2 + (d * x + e * y + f * z - v) ** 2
+                    + (g * x + h * y + i * z - w) ** 2 <= radius2
+                    for (x, y, z), (u, v, w) in zip(inertial.tolist(), body_list, strict=True)
+                ):
+                    attitudes.append(attitude)
         else:
             attitudes = wahba_svd(pattern_body, catalog)
             miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
@@ -646,12 +664,19 @@ class LostInSpaceIdentifier:
             m = len(matched)
             if m <= best_count or m < 3:
                 continue
-            if len(nearby.centres) == 1:  # database stars in the field about each boresight, at most
-                in_field = np.count_nonzero(nearby.unit[: nearby.n_db] @ nearby.centres[0] >= self._cos_half_field)
-            else:
-                in_field = ((nearby.unit[: nearby.n_db] @ nearby.centres.T) >= self._cos_half_field).sum(axis=0).max()
-            if bdtrc(m - 3, len(frame.body), min(in_field * frame.area, 1.0)) < self.match_threshold:
-                best, best_count = (attitude, nearby, matched, rows), m
+            # Database stars in the field about each boresight, at most: the sky cell's bound first (the chance of a
+            # false match grows with it, so what passes with it passes with the count), then the count.
+            n, area, threshold = len(frame.body), frame.area, self.match_threshold
+            in_field = nearby.in_field
+            if in_field is None or bdtrc(m - 3, n, min(in_field * area, 1.0)) >= threshold:
+                db_unit, cos_half_field = nearby.unit[: nearby.n_db], self._cos_half_field
+                if len(nearby.centres) == 1:
+                    in_field = np.count_nonzero(db_unit @ nearby.centres[0] >= cos_half_field)
+                else:
+                    in_field = ((db_unit @ nearby.centres.T) >= cos_half_field).sum(axis=0).max()
+                if bdtrc(m - 3, n, min(in_field * area, 1.0)) >= threshold:
+                    continue
+            best, best_count = (attitude, nearby, matched, rows), m
         return best
 
     def _grow(self, frame: _Frame, attitude: np.ndarray, nearby: _Nearby, matched: np.ndarray,
@@ -663,7 +688,7 @@ class LostInSpaceIdentifier:
         A hypothesis from one head's pattern leaves the roll about that head poorly known, which shifts the stars of
         other heads by more than the match radius; so matching alternates with refining the attitude, each detection
         searched within its match radius widened by 3 sigma of its predicted direction under the attitude's
-        covariance (:meth:`_widened_cos`), until the matches stop changing.  The last matching uses the plain match
+        covariance (:meth:`_widened`), until the matches stop changing.  The last matching uses the plain match
         radius.
         """
         body, unit = frame.body, self._label_unit
@@ -674,8 +699,12 @@ class LostInSpaceIdentifier:
             within = dot >= frame.cos_radius
             final = _closest_per_star(within.nonzero()[0], star, dot)
             grown = final
-            if ((dot >= frame.cos_grow) > within).any():  # else no widened radius matters
-                grown = _closest_per_star((dot >= self._widened_cos(frame, matched)).nonzero()[0], star, dot)
+            band = ((dot >= frame.cos_grow) > within).nonzero()[0]  # only these may gain from a widened radius
+            if len(band):
+                widened = self._widened(frame, matched, band, dot)
+                if len(widened):
+                    within[widened] = True
+                    grown = _closest_per_star(within.nonzero()[0], star, dot)
             if same_matches(grown, (matched, rows)):
                 break
             matched, rows = grown
@@ -688,23 +717,33 @@ class LostInSpaceIdentifier:
         if grown is not final and not same_matches(final, (matched, rows)):  # (else the same matches)
             attitude = _wahba(body[final[0]], unit[final[1]])
             nearby = self._nearby(frame, attitude, nearby)
-            dots = body @ (attitude @ nearby.unit.T)
+            dots = body.dot(attitude.dot(nearby.unit.T))
         return attitude, nearby, dots
 
-    def _widened_cos(self, frame: _Frame, matched: np.ndarray) -> np.ndarray:
-        """Smallest dot products (n,) within each detection's match radius widened by 3 sigma of its predicted
-        direction under the covariance of an attitude fitted on the ``matched`` detections, up to ``_GROW_MAX`` match
-        radii."""
+    def _widened(self, frame: _Frame, matched: np.ndarray, band: np.ndarray, dot: np.ndarray) -> list:
+        """The detections of ``band`` (beyond their match radius, within ``_GROW_MAX`` radii of a star at dot product
+        ``dot``) within their match radius widened by 3 sigma of their predicted direction under the covariance of an
+        attitude fitted on the ``matched`` detections; in plain numbers (a 3 x 3 inverse by cofactors)."""
         b = frame.body[matched]
-        if isinstance(frame.radius2, float):
+        scalar = isinstance(frame.radius2, float)
+        if scalar:
             weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2  # noise ** -2
-            information = weight * (len(b) * IDENTITY - b.T @ b)
+            information = weight * (len(b) * IDENTITY - b.T.dot(b))
         else:
             weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2[matched]
             information = weight.sum() * IDENTITY - (b.T * weight) @ b
-        covariance = np.linalg.inv(information)  # rad^2, about body axes
-        spread = covariance.trace() - ((frame.body @ covariance) * frame.body).sum(axis=1)
-        return np.maximum(frame.cos_radius - 4.5 * np.maximum(spread, 0.0), frame.cos_grow)
+        (a, d, e), (_, f, g), (_, _, h) = information.tolist()  # symmetric
+        ca, cd, ce = f * h - g * g, e * g - d * h, d * g - e * f  # its cofactors
+        cf, cg, ch = a * h - e * e, d * e - a * g, a * f - d * d
+        scale = 1.0 / (a * ca + d * cd + e * ce)  # covariance = cofactors * scale (rad^2, about body axes)
+        trace = ca + cf + ch
+        cos_radius = frame.cos_radius
+        out = []
+        for row, (x, y, z), near in zip(band.tolist(), frame.body[band].tolist(), dot[band].tolist(), strict=True):
+            quadratic = ca * x * x + cf * y * y + ch * z * z + 2.0 * (cd * x * y + ce * x * z + cg * y * z)
+            if near >= (cos_radius if scalar else cos_radius[row]) - 4.5 * max(scale * (trace - quadratic), 0.0):
+                out.append(row)
+        return out
 
     def _nearby(self, frame: _Frame, attitude: np.ndarray, known: _Nearby | None = None) -> _Nearby:
         """The labelling stars in ``frame``'s cones under ``attitude``; ``known`` itself if it was made for an
@@ -712,12 +751,13 @@ class LostInSpaceIdentifier:
         to."""
         if known is not None and np.vdot(known.attitude, attitude) >= frame.reuse:
             return known  # trace(A B^T) = 1 + 2 cos(angle between A and B)
-        centres = frame.axes @ attitude
+        centres = frame.axes.dot(attitude)
         if self._grid is not None and len(frame.chords) == 1 and frame.chords[0] <= self._grid_chord:
-            offsets, listed, units, hips, below = self._grid  # the stars listed for the sky cell
+            offsets, listed, units, hips, below, in_field = self._grid  # the stars listed for the sky cell
             cell = _cube_cell(*centres[0].tolist())
             first, end = offsets[cell], offsets[cell + 1]
-            return _Nearby(attitude, listed[first:end], units[first:end], below[cell], centres, hips[first:end])
+            return _Nearby(attitude, listed[first:end], units[first:end], below[cell], centres, hips[first:end],
+                           in_field[cell])
         if len(frame.chords) == 1:
             found = self._label_tree.query_ball_point(centres[0], frame.chords[0], return_sorted=True)
             rows = np.array(found, dtype=np.intp)
@@ -729,8 +769,8 @@ class LostInSpaceIdentifier:
     def _closest(self, frame: _Frame, attitude: np.ndarray, nearby: _Nearby) -> tuple:
         """The dot products (n, s) of the detections with ``nearby``'s stars under ``attitude``, and per detection the
         nearest database star (labelling row) and the dot product with it (-inf when there is none)."""
-        dots = frame.body @ (attitude @ nearby.unit.T)
+        dots = frame.body.dot(attitude.dot(nearby.unit.T))
         if nearby.n_db == 0:
             return dots, np.zeros(len(dots), dtype=np.intp), np.full(len(dots), -np.inf)
-        on_db = dots[:, : nearby.n_db]
-        return dots, nearby.rows[on_db.argmax(axis=1)], on_db.max(axis=1)
+        best = dots[:, : nearby.n_db].argmax(axis=1)
+        return dots, nearby.rows[best], dots[np.arange(len(dots)), best]

@@ -297,6 +297,8 @@ def checked_image(image, camera: Camera) -> np.ndarray:
         raise ValueError(f"image must be a 2-D array (DN), got {type(image).__name__}")
     if image.shape != (camera.height, camera.width):
         raise ValueError(f"image shape {image.shape} does not match the camera's {(camera.height, camera.width)}")
+    if np.issubdtype(image.dtype, np.integer):  # a sensor's counts: finite, converted without the check
+        return image.astype(np.float64)
     return checks.finite("image", image)
 
 

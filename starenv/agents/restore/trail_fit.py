@@ -117,7 +117,7 @@ def _interp(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
 
 
 def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: float,
-                dtype=np.float32):
+                dtype=np.float32, derivatives: bool = True):
     """Unit-flux trail at the pixels (x, y) (n,) px of a star at mid-exposure ``centre`` (x, y) px moving at constant
     speed along each chord of ``centre + knots`` (:func:`chords`), equal time on each, and its derivatives
     ``dT/dc_x``, ``dT/dc_y`` (n,).  Batched: x, y (C, n), centre (C, 2), knots (C, K + 1, 2) give (C, n) each.
@@ -127,16 +127,16 @@ def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: 
     renderer integrates the spot over each pixel; this is its second-moment match, within 1 % of the peak); a chord
     of length 0 is a round Gaussian.  Positions relative to the chords are taken in float64, the profiles in
     ``dtype`` (float32: 1e-6 of the peak, far below the model's own 1 %, at 2/3 of float64's cost), which the three
-    arrays returned have."""
+    arrays returned have; ``derivatives=False``: the trail alone, the derivatives None."""
     single = np.ndim(x) == 1
     x, y = np.atleast_2d(x), np.atleast_2d(y)
     centre = np.asarray(centre, dtype=np.float64).reshape(-1, 2)
     knots = np.asarray(knots, dtype=np.float64).reshape(len(centre), -1, 2)
     if x.size > MODEL_CHUNK_PX and len(x) > 1:  # a few trails at a time: the temporaries stay in cache
         rows = max(1, MODEL_CHUNK_PX // x.shape[1])
-        parts = [trail_model(x[a : a + rows], y[a : a + rows], centre[a : a + rows], knots[a : a + rows], sigma, dtype)
-                 for a in range(0, len(x), rows)]
-        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+        parts = [trail_model(x[a : a + rows], y[a : a + rows], centre[a : a + rows], knots[a : a + rows], sigma, dtype,
+                             derivatives) for a in range(0, len(x), rows)]
+        return tuple(None if p[0] is None else np.concatenate(p) for p in zip(*parts, strict=True))
     s = math.sqrt(sigma**2 + 1.0 / 12.0)
     norm = math.sqrt(2.0 * math.pi) * s
     n_chords = knots.shape[1] - 1
@@ -158,29 +158,31 @@ def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: 
         u = xr * es[:, 0, None] + yr * es[:, 1, None] - u0
         v = yr * es[:, 0, None] - xr * es[:, 1, None] - v0
         cross = _gauss(v)
-        head = _gauss(u)
+        head = _gauss(u) if derivatives or still.any() else None
         if still.all():
             along, d_along = head, -u * head
         else:
             ln = (length / s).astype(ftype)[:, None]
-            tail = _gauss(u - ln)
             along = (_erf(u * ftype(math.sqrt(0.5))) - _erf((u - ln) * ftype(math.sqrt(0.5)))) * (
                 (0.5 * norm / safe).astype(ftype)[:, None])
-            d_along = (head - tail) * (s / safe).astype(ftype)[:, None]
+            d_along = (head - _gauss(u - ln)) * (s / safe).astype(ftype)[:, None] if derivatives else None
             if still.any():
                 along = np.where(still[:, None], head, along)
-                d_along = np.where(still[:, None], -u * head, d_along)
+                d_along = np.where(still[:, None], -u * head, d_along) if derivatives else None
         # In units of s, T = along cross / norm^2, dT/du = d_along cross / (s norm^2) and dT/dv = -v T / s; the
         # centre moves the pixel by -1: dT/dc = -grad T.
         g = along * cross
-        du = d_along * cross
-        dv = v * g
         total += g
-        gx -= du * ex + dv * ey
-        gy += dv * ex - du * ey
+        if derivatives:
+            du = d_along * cross
+            dv = v * g
+            gx -= du * ex + dv * ey
+            gy += dv * ex - du * ey
     scale = 1.0 / (n_chords * norm**2)
     out = total * ftype(scale), gx * ftype(scale / s), gy * ftype(scale / s)
-    return tuple(a[0] for a in out) if single else out
+    if not derivatives:
+        out = out[0], None, None
+    return tuple(None if a is None else a[0] for a in out) if single else out
 
 
 def _normal_equations(t, tx, ty, flux, w, r=None):
@@ -416,7 +418,8 @@ class TrailFitDeblurrer:
             pixels = near_paths(np.array([tr[5] for tr in group]), np.array([tr[6] for tr in group]),
                                 np.array([tr[4] for tr in group]), reach)
             for (i, knots, along, slack, *_), rc in zip(group, pixels, strict=True):
-                rc = rc[data[rc[:, 0], rc[:, 1]] < full_scale]
+                if full_scale < math.inf:
+                    rc = rc[data[rc[:, 0], rc[:, 1]] < full_scale]
                 if len(rc) >= 8:
                     cands.append((i, knots, rc[:, 0], rc[:, 1], along, slack))
         cands.sort(key=lambda cd: cd[0])
@@ -456,8 +459,8 @@ class TrailFitDeblurrer:
             rows, cols, _ = _padded([kept[i][4] for i in group], [kept[i][5] for i in group])
             x, y = cols.astype(np.float64), rows.astype(np.float64)
             c = np.array([kept[i][2] for i in group])
-            trail = trail_model(x, y, c, np.stack([kept[i][3] for i in group]), sigma)[0]
-            still = trail_model(x, y, c, np.zeros((len(group), 2, 2)), sigma)[0]
+            trail = trail_model(x, y, c, np.stack([kept[i][3] for i in group]), sigma, derivatives=False)[0]
+            still = trail_model(x, y, c, np.zeros((len(group), 2, 2)), sigma, derivatives=False)[0]
             for g, i in enumerate(group):
                 size = len(kept[i][4])
                 changes[i] = kept[i][0] * (still[g, :size] - trail[g, :size])

@@ -37,8 +37,14 @@ def _workers(shape: tuple[int, int]) -> int:
     return -1 if shape[0] * shape[1] >= THREADED_FFT_PX else 1
 
 
-def _image(name: str, value, ndim: int) -> np.ndarray:
-    arr = checks.finite(name, value)
+def _image(name: str, value, ndim: int, single: bool = False) -> np.ndarray:
+    """``value`` checked as a finite, non-empty ``ndim``-D array: float64, or kept float32 with ``single``."""
+    if single:
+        arr = np.asarray(value, dtype=np.float32)
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{name} must be finite (no NaN or inf)")
+    else:
+        arr = checks.finite(name, value)
     if arr.ndim != ndim or min(arr.shape) == 0:
         raise ValueError(f"{name} must be a non-empty {ndim}-D array, got shape {arr.shape}")
     return arr
@@ -67,7 +73,10 @@ class _SameConvolver:
             origin = ((kh - 1) // 2, (kw - 1) // 2)
             flipped_origin = (kh // 2, kw // 2)
             self.otf = self._circular_otf(psf, shape, origin)
-            self.otf_flipped = self._circular_otf(psf[..., ::-1, ::-1], shape, flipped_origin)
+            if kh % 2 and kw % 2:  # odd kernels: the flipped one is the kernel reflected about pixel (0, 0)
+                self.otf_flipped = np.conj(self.otf)
+            else:
+                self.otf_flipped = self._circular_otf(psf[..., ::-1, ::-1], shape, flipped_origin)
         else:
             self.shape = (fft.next_fast_len(h + kh - 1, real=True), fft.next_fast_len(w + kw - 1, real=True))
             self.start = ((kh - 1) // 2, (kw - 1) // 2)
@@ -83,8 +92,9 @@ class _SameConvolver:
         return fft.rfft2(np.roll(padded, (-origin[0], -origin[1]), axis=(-2, -1)), workers=_workers(shape))
 
     def _apply(self, x: np.ndarray, otf: np.ndarray) -> np.ndarray:
-        spectrum = fft.rfft2(x, self.shape, workers=self.workers) * otf
-        full = fft.irfft2(spectrum, self.shape, workers=self.workers)
+        spectrum = fft.rfft2(x, self.shape, workers=self.workers)
+        spectrum *= otf
+        full = fft.irfft2(spectrum, self.shape, workers=self.workers, overwrite_x=True)
         (r, c), (h, w) = self.start, self.size
         return full[..., r : r + h, c : c + w]
 
@@ -142,12 +152,10 @@ def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0, cir
     border holds only background, where the wrap-around is harmless).  Returns (b, h, w) in the working precision.
     """
     single = getattr(patches, "dtype", None) == np.float32 and getattr(psfs, "dtype", None) == np.float32
-    g = _image("patches", patches, 3)
+    g = _image("patches", patches, 3, single)
     if np.any(g < 0):
         raise ValueError("patches must be non-negative (Richardson-Lucy models Poisson counts)")
-    h = _kernels(_image("psfs", psfs, 3), "psfs")
-    if single:
-        g, h = g.astype(np.float32), h.astype(np.float32)
+    h = _kernels(_image("psfs", psfs, 3, single), "psfs")
     if len(h) != len(g):
         raise ValueError(f"psfs must hold one kernel per patch: {len(g)} patches, {len(h)} kernels")
     n_iter = checks.integer("iterations", iterations, 0, 100000)
@@ -165,8 +173,12 @@ def richardson_lucy_batch(patches, psfs, iterations: int, *, background=0.0, cir
     if not isinstance(circular, bool):
         raise ValueError(f"circular must be True or False, got {circular!r}")
     conv = _SameConvolver(g.shape[1:], h, circular)
+    floor = b + g.dtype.type(EPS)
     for k in range(1, n_iter + 1):
-        f = f * np.maximum(conv.correlate(g / (conv.convolve(f) + b + EPS)), 0.0)
+        model = conv.convolve(f)
+        model += floor
+        ratio = conv.correlate(np.divide(g, model, out=model))
+        f = f * np.maximum(ratio, 0.0, out=ratio)
         if callback is not None and callback(k, f):
             break
     return f
@@ -177,12 +189,10 @@ def convolve_batch(images, psfs, *, circular: bool = False) -> np.ndarray:
     'same' mode with zero padding or, with ``circular``, periodic on the image itself (kernels not normalised; float32
     when both inputs are float32, else float64)."""
     single = getattr(images, "dtype", None) == np.float32 and getattr(psfs, "dtype", None) == np.float32
-    x = _image("images", images, 3)
-    k = _image("psfs", psfs, 3)
+    x = _image("images", images, 3, single)
+    k = _image("psfs", psfs, 3, single)
     if len(k) not in (1, len(x)):
         raise ValueError(f"psfs must hold one kernel per image or a single one: {len(x)} images, {len(k)} kernels")
-    if single:
-        x, k = x.astype(np.float32), k.astype(np.float32)
     return _SameConvolver(x.shape[1:], k, circular).convolve(x)
 
 
@@ -226,30 +236,59 @@ def robust_background(image: np.ndarray) -> tuple[float, float]:
     return level, max(noise, 0.5)
 
 
+POINT_TEST_MAX_OVERLAP = 0.4  # the point test runs where a trail gives the spot filter at most this share of its own
+
+
 def streak_candidates(data: np.ndarray, level: float, noise: float, streak: np.ndarray, threshold_sigma: float,
-                      min_area_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      min_area_px: int, spot: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Candidate streaks of a frame (DN): the frame less its background ``level`` correlated with the expected trail
     ``streak`` (the matched filter of a trail); 8-connected components of at least ``min_area_px`` pixels where the
     response exceeds ``threshold_sigma`` times its noise (white pixel ``noise`` through the filter).  Returns their
     centroids (k, 2) px (x, y), the positions of their response's peaks (k, 2) px and the peak responses (k,) in
     noise sigmas.  Either position is the trail's centre where the trail matches ``streak`` (the response is then
     symmetric about it, and the peak is not moved by a trail cut by the frame's edge); where the trail is longer than
-    ``streak`` the response has a plateau and only the centroid is its centre."""
-    template = streak.astype(np.float32)
-    response = cv2.filter2D((data - level).astype(np.float32), cv2.CV_32F, template, borderType=cv2.BORDER_REFLECT)
-    response /= noise * float(np.sqrt(np.sum(streak**2)))
+    ``streak`` the response has a plateau and only the centroid is its centre.
+
+    ``spot`` (the still star's kernel, normalised): components that a lone bright pixel explains (a hot pixel, a
+    cosmic-ray hit) are left out.  Over a component, ``P`` is the peak of the spot's matched filter and ``R`` the
+    trail's, both in noise sigmas; a trail gives ``P / R = rho``, the normalised cross-correlation peak of ``streak``
+    and ``spot``, a lone pixel ``P / R = 1 / kappa``, ``kappa = (max(streak) / |streak|) / (max(spot) / |spot|)``.
+    A component is a point when ``P > R`` and ``R - kappa P`` (the response left once the point's is taken away)
+    is below ``threshold_sigma``.  The test runs only where ``rho <= POINT_TEST_MAX_OVERLAP`` (trails of about 20 px
+    and more with a 1 px spot): for shorter trails the two hypotheses are too close to tell apart in the noise."""
+    signal = data.astype(np.float32)
+    signal -= np.float32(level)
+    streak_norm = float(np.sqrt(np.sum(streak**2)))
+    response = cv2.filter2D(signal, cv2.CV_32F, streak.astype(np.float32), borderType=cv2.BORDER_REFLECT)
+    response /= noise * streak_norm
     above = (response > threshold_sigma).astype(np.uint8)
-    n, labels, stats, centroids = cv2.connectedComponentsWithStats(above, connectivity=8, ltype=cv2.CV_32S)
-    keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= min_area_px) + 1
+    n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(above, 8, cv2.CV_32S, cv2.CCL_BBDT)
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_area_px
+    keep[0] = False  # the background
+    flat = np.flatnonzero(above)  # the pixels above the threshold
+    lab, val = labels.ravel()[flat], response.ravel()[flat]
+    best = np.zeros(n, dtype=np.float32)
+    np.maximum.at(best, lab, val)
+    at_best = val == best[lab]
+    top = np.zeros(n, dtype=np.int64)  # each component's strongest pixel, the last in raster order on a tie
+    np.maximum.at(top, lab[at_best], flat[at_best])
+    if spot is not None:
+        spot_norm = float(np.sqrt(np.sum(spot**2)))
+        pad = max(spot.shape)
+        rho = cv2.filter2D(np.pad(streak, pad), -1, spot, borderType=cv2.BORDER_CONSTANT).max() / (streak_norm
+                                                                                                   * spot_norm)
+        if rho <= POINT_TEST_MAX_OVERLAP:
+            kappa = float(streak.max() / streak_norm) / float(spot.max() / spot_norm)
+            point = cv2.sepFilter2D(signal, cv2.CV_32F, spot.sum(axis=0).astype(np.float32),
+                                    spot.sum(axis=1).astype(np.float32), borderType=cv2.BORDER_REFLECT)
+            point_peak = np.zeros(n, dtype=np.float32)
+            np.maximum.at(point_peak, lab, point.ravel()[flat] / np.float32(noise * spot_norm))
+            keep &= ~((point_peak > best) & (best - kappa * point_peak < threshold_sigma))
+    keep = np.flatnonzero(keep)
     if len(keep) == 0:
         return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
-    flat = np.flatnonzero(above)  # the pixels above the threshold, sorted by (component, response)
-    lab, val = labels.ravel()[flat], response.ravel()[flat]
-    order = np.lexsort((val, lab))
-    last = np.flatnonzero(np.diff(lab[order], append=n))  # the strongest pixel of each component 1 .. n - 1
-    top = flat[order[last]][keep - 1]
-    peak_xy = np.stack([top % data.shape[1], top // data.shape[1]], axis=1).astype(np.float64)
-    return centroids[keep].reshape(-1, 2), peak_xy, response.ravel()[top].astype(np.float64)
+    peak_xy = np.stack([top[keep] % data.shape[1], top[keep] // data.shape[1]], axis=1).astype(np.float64)
+    return centroids[keep].reshape(-1, 2), peak_xy, best[keep].astype(np.float64)
 
 
 def checked_image(image, camera: Camera) -> np.ndarray:
@@ -258,6 +297,8 @@ def checked_image(image, camera: Camera) -> np.ndarray:
         raise ValueError(f"image must be a 2-D array (DN), got {type(image).__name__}")
     if image.shape != (camera.height, camera.width):
         raise ValueError(f"image shape {image.shape} does not match the camera's {(camera.height, camera.width)}")
+    if np.issubdtype(image.dtype, np.integer):  # a sensor's counts: finite, converted without the check
+        return image.astype(np.float64)
     return checks.finite("image", image)
 
 

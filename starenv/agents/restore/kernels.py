@@ -38,6 +38,7 @@ from starenv.sim.render import band_fractions
 
 MAX_STEP_PX = 0.5  # largest image motion (px) between two consecutive path samples when n_samples is None
 MAX_SAMPLES = 20001
+KERNEL_CHUNK_VALUES = 1 << 22  # path_kernels builds its factors in chunks of at most this many values
 
 
 @dataclass
@@ -200,6 +201,18 @@ def star_paths(camera: Camera, gyro: GyroSamples, t_start: float, t_end: float, 
     return out
 
 
+def sparse_paths(camera: Camera, gyro: GyroSamples, t_start: float, t_end: float, xy_mid) -> np.ndarray:
+    """:func:`star_paths` with the fewest samples that keep every path's consecutive samples at most ``MAX_STEP_PX``
+    apart (star_paths' own count bounds the image speed by the summed rates at the field's corner: up to twice as
+    many, and kernels cost in proportion)."""
+    paths = star_paths(camera, gyro, t_start, t_end, xy_mid)
+    if len(paths) == 0 or paths.shape[1] < 3:
+        return paths
+    widest = float(np.linalg.norm(np.diff(paths, axis=1), axis=2).max())  # px between samples: ~1 / count
+    m = _odd_samples(widest * paths.shape[1], None)
+    return star_paths(camera, gyro, t_start, t_end, xy_mid, n_samples=m) if m < paths.shape[1] else paths
+
+
 def _odd_samples(length_px: float, n_samples: int | None) -> int:
     if n_samples is not None:
         m = checks.integer("n_samples", n_samples, 1, MAX_SAMPLES)
@@ -241,14 +254,22 @@ def path_kernels(paths, sigma_px: float, xy_mid=None) -> tuple[list[np.ndarray],
     n_band = frac.shape[-1]
     half = np.maximum(-band.min(axis=1), band.max(axis=1) + n_band - 1)  # (n, 2): each spans [-half, half]
     w, h = (2 * half + 1).T
-    start = np.concatenate([[0], np.cumsum(w * h)])  # each kernel's place in one flat buffer
-    span = np.arange(n_band)
-    rows = band[..., 1, None] + half[:, None, 1, None] + span  # (n, m, n_band) rows and columns in each kernel
-    cols = band[..., 0, None] + half[:, None, 0, None] + span
-    flat = start[:-1, None, None, None] + rows[..., :, None] * w[:, None, None, None] + cols[..., None, :]
-    values = frac[..., 1, :, None] * frac[..., 0, None, :]  # (n, m, rows, cols)
-    buffer = np.bincount(flat.ravel(), values.ravel(), minlength=start[-1])
-    kernels = [buffer[a:b].reshape(hh, ww) for a, b, hh, ww in zip(start[:-1], start[1:], h, w, strict=True)]
+    # Each sample's spot is separable: kernel = sum_s outer(rows_s, cols_s) = R^T C, with R (m, kh) and C (m, kw)
+    # holding each sample's row and column fractions at their places: one matrix product per kernel, in chunks of
+    # kernels that keep R and C under KERNEL_CHUNK_VALUES values each.
+    places = [band[..., axis, None] + half[:, None, axis, None] + np.arange(n_band) for axis in (0, 1)]  # (n, m, nb)
+    kernels = []
+    chunk = max(1, KERNEL_CHUNK_VALUES // (m * int(max(h.max(), w.max()))))
+    for a in range(0, n, chunk):
+        b = min(a + chunk, n)
+        factors = []
+        for axis, size in ((1, int(h[a:b].max())), (0, int(w[a:b].max()))):
+            placed = np.zeros(((b - a) * m, size))
+            placed[np.arange((b - a) * m)[:, None], places[axis][a:b].reshape(-1, n_band)] = (
+                frac[a:b, :, axis].reshape(-1, n_band))
+            factors.append(placed.reshape(b - a, m, size))
+        full = np.matmul(factors[0].transpose(0, 2, 1), factors[1])  # (b - a, largest kh, largest kw)
+        kernels += [k[:hh, :ww] for k, hh, ww in zip(full, h[a:b], w[a:b], strict=True)]
     return [k / k.sum() for k in kernels], half.astype(np.int64)
 
 
@@ -295,7 +316,8 @@ class FrameStreaks:
     """One head's frame ready for restoration: the checked frame ``data`` (DN), the spot ``sigma`` (px), the robust
     background ``level`` and ``noise`` (DN), and the candidate streaks of
     :func:`~starenv.agents.restore.algorithms.streak_candidates` (``centroids`` and ``peaks`` (k, 2) px, peak
-    ``responses`` (k,) in noise sigmas) found with the frame centre's kernel."""
+    ``responses`` (k,) in noise sigmas) found with the frame centre's kernel, drawn from its path ``streak_path``
+    (m, 2) px (:func:`exposure_path`)."""
 
     data: np.ndarray
     sigma: float
@@ -304,16 +326,20 @@ class FrameStreaks:
     centroids: np.ndarray
     peaks: np.ndarray
     responses: np.ndarray
+    streak_path: np.ndarray
 
 
 def frame_streaks(image, head: int, step: StepInput, psf_sigma_option: float | None, threshold_sigma: float,
-                  min_area_px: int) -> FrameStreaks:
+                  min_area_px: int, drop_points: bool = False) -> FrameStreaks:
     """The :class:`FrameStreaks` of head ``head``'s ``image`` at ``step`` (``psf_sigma_option``: a deblurrer's
-    ``psf_sigma_px``, None for the calibrated camera's)."""
+    ``psf_sigma_px``, None for the calibrated camera's; ``drop_points``: candidates that a lone bright pixel explains
+    are left out, :func:`~starenv.agents.restore.algorithms.streak_candidates` with the still spot)."""
     cam = step.cameras[head]
     data = checked_image(image, cam)
     sigma = sigma_for(psf_sigma_option, cam)
     level, noise = robust_background(data)
-    streak, _ = frame_kernel(step, head, sigma)
-    centroids, peaks, responses = streak_candidates(data, level, noise, streak, threshold_sigma, min_area_px)
-    return FrameStreaks(data, sigma, level, noise, centroids, peaks, responses)
+    path = exposure_path(step, head)
+    streak, _ = path_kernel(path, sigma)  # as frame_kernel draws it
+    spot = path_kernel(np.zeros((1, 2)), sigma)[0] if drop_points else None
+    centroids, peaks, responses = streak_candidates(data, level, noise, streak, threshold_sigma, min_area_px, spot)
+    return FrameStreaks(data, sigma, level, noise, centroids, peaks, responses, path)

@@ -6,7 +6,7 @@ Richardson-Lucy) and the ``region="streaks"`` modes of seed 000's and seed 001's
 a stack of patches is deconvolved (the ``deconvolve`` callable).  Work grows with the stars, not the frame.
 
 A candidate's kernel is the path of a star at that candidate's centroid (:func:`~starenv.agents.restore.kernels.
-star_paths`), drawn with ``kernel_sigma_px``; its box is the kernel's extent about the centroid, its patch that box
+sparse_paths`), drawn with ``kernel_sigma_px``; its box is the kernel's extent about the centroid, its patch that box
 grown by ``margin_px`` on each side and rounded up to a multiple of ``PATCH_STEP_PX`` per axis.  Patches are
 deconvolved periodically on themselves (``circular``: transforms of the patch's size; their borders hold only
 background and noise, the wrap-around there is harmless), then resharpened as the whole-frame restorers do
@@ -23,7 +23,7 @@ import numpy as np
 
 from starenv.agents.base import StepInput
 from starenv.agents.restore.algorithms import convolve_batch
-from starenv.agents.restore.kernels import FrameStreaks, path_kernels, star_paths, window
+from starenv.agents.restore.kernels import FrameStreaks, path_kernels, sparse_paths, window
 
 PATCH_STEP_PX = 8  # patch sizes are rounded up to multiples of this, one batch per size
 
@@ -46,7 +46,7 @@ def restore_streaks(found: FrameStreaks, step: StepInput, head: int, deconvolve:
     if len(centres) == 0:
         return out, info
     t0, t1 = window(step)
-    kernels, _ = path_kernels(star_paths(cam, step.gyro, t0, t1, centres), kernel_sigma_px)
+    kernels, _ = path_kernels(sparse_paths(cam, step.gyro, t0, t1, centres), kernel_sigma_px)
     half = np.array([[k.shape[1] // 2, k.shape[0] // 2] for k in kernels])  # (k, 2) x, y
     mid = np.rint(centres).astype(np.int64)
     lo = np.maximum(mid - half, 0)
@@ -85,12 +85,17 @@ def _restore(out, data, level, idx, kernels, lo, hi, patch, sigma, deconvolve: D
     cols = px0[:, None] + np.arange(pw)[None, :]
     patches = data[rows[:, :, None], cols[:, None, :]]
     estimate = deconvolve(patches.astype(np.float32), psfs, level, idx)
-    # resharpen() on the batch, with the same periodic convolutions (the margins that wrap are not pasted).
-    model = convolve_batch(estimate, psfs / psfs.sum(axis=(1, 2), keepdims=True), circular=True)
+    # resharpen() on the batch, with the same periodic convolutions (the margins that wrap are not pasted), in one:
+    # g - f (x) h + f (x) G = g - f (x) (h - G).
     radius = int(np.ceil(4.0 * sigma))
     g = cv2.getGaussianKernel(2 * radius + 1, sigma, cv2.CV_64F)  # the kernel cv2.GaussianBlur applies
-    still = convolve_batch(estimate, (g @ g.T).astype(np.float32)[None], circular=True)
-    restored = patches - model + still
+    ch, cw = max(kh, 2 * radius + 1), max(kw, 2 * radius + 1)  # odd: the kernels' and the spot's centres align
+    change = np.zeros((len(idx), ch, cw), dtype=np.float32)
+    r, c = (ch - kh) // 2, (cw - kw) // 2
+    change[:, r : r + kh, c : c + kw] = psfs / psfs.sum(axis=(1, 2), keepdims=True)
+    r, c = ch // 2 - radius, cw // 2 - radius
+    change[:, r : r + 2 * radius + 1, c : c + 2 * radius + 1] -= (g @ g.T).astype(np.float32)
+    restored = patches - convolve_batch(estimate, change, circular=True)
     for i, j in enumerate(idx):
         (x0, y0), (x1, y1) = lo[j], hi[j]
         out[y0 : y1 + 1, x0 : x1 + 1] = restored[i, y0 - py0[i] : y1 + 1 - py0[i], x0 - px0[i] : x1 + 1 - px0[i]]

@@ -35,7 +35,8 @@ class RoiDeblurrer:
         self.last_info: dict = {}
 
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
-        found = frame_streaks(image, head, step, self.psf_sigma_px, self.threshold_sigma, self.min_area_px)
+        found = frame_streaks(image, head, step, self.psf_sigma_px, self.threshold_sigma, self.min_area_px,
+                              drop_points=True)
 
         def deconvolve(patches, psfs, level, members):
             return richardson_lucy_batch(np.maximum(patches, 0.0), psfs, self.iterations, background=level,

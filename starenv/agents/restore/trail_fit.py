@@ -44,7 +44,6 @@ from scipy.special import erf
 from starenv import checks
 from starenv.agents.base import StepInput
 from starenv.agents.restore.kernels import (
-    exposure_path,
     frame_streaks,
     spot_sigma,
     star_paths,
@@ -57,30 +56,68 @@ ALONG_FRACTION = 0.1  # along the trail it may move SHIFT_PX + this fraction of 
 MAX_STEP_PX = 0.01  # Gauss-Newton stops when the position moves less than this (px)
 CHORD_TOLERANCE_PX = 0.05  # a trail is drawn as chords no farther than this from its gyro path
 MAX_CHORDS = 32
+MODEL_CHUNK_PX = 1 << 14  # trail_model evaluates this many pixels at a time (float32: in cache)
+NEAR_CHUNK_PX = 1 << 16  # near_paths screens this many pixels at once (float32: in cache)
+ERF_SATURATION = 6.0  # |a| beyond which erf(a) rounds to +-1 (from 5.93 in float64, sooner in float32)
+# exp() arguments are held above this: its underflow (and products of two underflows) take numpy's slow path, some
+# 20x slower; exp(-30) = 1e-13 of the peak, below float32's resolution of any sum
+GAUSS_FLOOR = -30.0
 
 
-def chords(offsets: np.ndarray) -> np.ndarray:
+def _gauss(z: np.ndarray) -> np.ndarray:
+    """``exp(-z^2 / 2)``, its argument held above ``GAUSS_FLOOR``."""
+    return np.exp(np.maximum(-0.5 * z**2, GAUSS_FLOOR))
+
+
+def _erf(a: np.ndarray) -> np.ndarray:
+    """``scipy.special.erf(a)``, bit for bit, evaluated only where it is not +-1 (most of a trail's pixels lie far
+    from its chords' ends, where it is: 3x faster there)."""
+    out = np.sign(a)
+    near = np.flatnonzero(np.abs(a) < ERF_SATURATION)
+    out.ravel()[near] = erf(a.ravel()[near])
+    return out
+
+
+def chords(offsets: np.ndarray) -> np.ndarray | list[np.ndarray]:
     """The trail's knots (K + 1, 2) px relative to mid-exposure: its positions at the exposure's start, at K - 1
     equally spaced instants and at its end, so that constant-speed chords between them stay within
     ``CHORD_TOLERANCE_PX`` of the path.  ``offsets`` (m, 2): the path at the m midpoint instants ``(j + 1/2) / m``
-    of the exposure (:func:`starenv.agents.restore.kernels.star_paths`); the ends are extrapolated half a sample."""
-    o = np.asarray(offsets, dtype=np.float64).reshape(-1, 2)
-    m = len(o)
+    of the exposure (:func:`starenv.agents.restore.kernels.star_paths`); the ends are extrapolated half a sample.
+    ``offsets`` (C, m, 2): C trails at once, a list of their knots."""
+    o = np.asarray(offsets, dtype=np.float64)
+    batch = o.ndim == 3
+    o = o.reshape(-1, o.shape[-2], 2) if batch else o.reshape(1, -1, 2)
+    m = o.shape[1]
     if m == 1:
-        return np.repeat(o, 2, axis=0)
+        knots = np.repeat(o, 2, axis=1)
+        return list(knots) if batch else knots[0]
     t = np.concatenate([[0.0], (np.arange(m) + 0.5) / m, [1.0]])
-    ext = np.concatenate([o[:1] - 0.5 * (o[1] - o[0]), o, o[-1:] + 0.5 * (o[-1] - o[-2])])
+    ext = np.concatenate([o[:, :1] - 0.5 * (o[:, 1:2] - o[:, :1]), o, o[:, -1:] + 0.5 * (o[:, -1:] - o[:, -2:-1])],
+                         axis=1)
+    out: list[np.ndarray] = [np.zeros((0, 2))] * len(o)
+    todo = np.arange(len(o))
     k = 1
-    while True:
+    while len(todo):
         knots_t = np.linspace(0.0, 1.0, k + 1)
-        knots = np.stack([np.interp(knots_t, t, ext[:, 0]), np.interp(knots_t, t, ext[:, 1])], axis=1)
-        on_chords = np.stack([np.interp(t, knots_t, knots[:, 0]), np.interp(t, knots_t, knots[:, 1])], axis=1)
-        if k >= MAX_CHORDS or np.abs(on_chords - ext).max() <= CHORD_TOLERANCE_PX:
-            return knots
+        knots = _interp(knots_t, t, ext[todo])
+        ok = np.abs(_interp(t, knots_t, knots) - ext[todo]).max(axis=(1, 2)) <= CHORD_TOLERANCE_PX
+        ok |= k >= MAX_CHORDS
+        for j, kn in zip(todo[ok], knots[ok], strict=True):
+            out[j] = kn
+        todo = todo[~ok]
         k *= 2
+    return out if batch else out[0]
 
 
-def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: float):
+def _interp(x: np.ndarray, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """``np.interp(x, xp, .)`` of each of the curves ``fp`` (C, len(xp), 2) at once: (C, len(x), 2)."""
+    j = np.clip(np.searchsorted(xp, x, side="right") - 1, 0, len(xp) - 2)
+    w = ((x - xp[j]) / (xp[j + 1] - xp[j]))[None, :, None]
+    return fp[:, j] + w * (fp[:, j + 1] - fp[:, j])
+
+
+def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: float,
+                dtype=np.float32, derivatives: bool = True):
     """Unit-flux trail at the pixels (x, y) (n,) px of a star at mid-exposure ``centre`` (x, y) px moving at constant
     speed along each chord of ``centre + knots`` (:func:`chords`), equal time on each, and its derivatives
     ``dT/dc_x``, ``dT/dc_y`` (n,).  Batched: x, y (C, n), centre (C, 2), knots (C, K + 1, 2) give (C, n) each.
@@ -88,51 +125,77 @@ def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: 
     Each chord of length L is a uniform line convolved with a Gaussian: along it ``(Phi(u / s) - Phi((u - L) / s))
     / L``, across it ``phi(v / s) / s``, with ``s^2 = sigma^2 + 1/12`` (the pixel's box added to the spot: the
     renderer integrates the spot over each pixel; this is its second-moment match, within 1 % of the peak); a chord
-    of length 0 is a round Gaussian."""
+    of length 0 is a round Gaussian.  Positions relative to the chords are taken in float64, the profiles in
+    ``dtype`` (float32: 1e-6 of the peak, far below the model's own 1 %, at 2/3 of float64's cost), which the three
+    arrays returned have; ``derivatives=False``: the trail alone, the derivatives None."""
     single = np.ndim(x) == 1
     x, y = np.atleast_2d(x), np.atleast_2d(y)
     centre = np.asarray(centre, dtype=np.float64).reshape(-1, 2)
     knots = np.asarray(knots, dtype=np.float64).reshape(len(centre), -1, 2)
+    if x.size > MODEL_CHUNK_PX and len(x) > 1:  # a few trails at a time: the temporaries stay in cache
+        rows = max(1, MODEL_CHUNK_PX // x.shape[1])
+        parts = [trail_model(x[a : a + rows], y[a : a + rows], centre[a : a + rows], knots[a : a + rows], sigma, dtype,
+                             derivatives) for a in range(0, len(x), rows)]
+        return tuple(None if p[0] is None else np.concatenate(p) for p in zip(*parts, strict=True))
     s = math.sqrt(sigma**2 + 1.0 / 12.0)
     norm = math.sqrt(2.0 * math.pi) * s
     n_chords = knots.shape[1] - 1
-    total, gx, gy = np.zeros(x.shape), np.zeros(x.shape), np.zeros(x.shape)
+    ftype = np.dtype(dtype).type  # the profiles' precision
+    xr = (x - centre[:, 0, None]).astype(ftype)  # pixels relative to the centre: within the trail's reach
+    yr = (y - centre[:, 1, None]).astype(ftype)
+    total, gx, gy = (np.zeros(x.shape, dtype=ftype) for _ in range(3))
     for k in range(n_chords):
         d = knots[:, k + 1] - knots[:, k]
         length = np.hypot(d[:, 0], d[:, 1])
         still = length < 1e-6
         safe = np.where(still, 1.0, length)
         e = np.where(still[:, None], [1.0, 0.0], d / safe[:, None])
-        dx = x - (centre[:, 0] + knots[:, k, 0])[:, None]
-        dy = y - (centre[:, 1] + knots[:, k, 1])[:, None]
-        ex, ey = e[:, 0, None], e[:, 1, None]
-        u = dx * ex + dy * ey
-        v = -dx * ey + dy * ex
-        cross = np.exp(-0.5 * (v / s) ** 2) / norm
-        head = np.exp(-0.5 * (u / s) ** 2)
+        ex, ey = e[:, 0, None].astype(ftype), e[:, 1, None].astype(ftype)
+        # along and across the chord from its start, in units of s
+        es = (e / s).astype(ftype)
+        u0 = ((knots[:, k, 0] * e[:, 0] + knots[:, k, 1] * e[:, 1]) / s).astype(ftype)[:, None]
+        v0 = ((knots[:, k, 1] * e[:, 0] - knots[:, k, 0] * e[:, 1]) / s).astype(ftype)[:, None]
+        u = xr * es[:, 0, None] + yr * es[:, 1, None] - u0
+        v = yr * es[:, 0, None] - xr * es[:, 1, None] - v0
+        cross = _gauss(v)
+        head = _gauss(u) if derivatives or still.any() else None
         if still.all():
-            along, d_along = head / norm, -u / s**2 * head / norm
+            along, d_along = head, -u * head
         else:
-            ln = length[:, None]
-            tail = np.exp(-0.5 * ((u - ln) / s) ** 2)
-            along = 0.5 * (erf(u / (math.sqrt(2.0) * s)) - erf((u - ln) / (math.sqrt(2.0) * s))) / safe[:, None]
-            d_along = (head - tail) / (norm * safe[:, None])
+            ln = (length / s).astype(ftype)[:, None]
+            along = (_erf(u * ftype(math.sqrt(0.5))) - _erf((u - ln) * ftype(math.sqrt(0.5)))) * (
+                (0.5 * norm / safe).astype(ftype)[:, None])
+            d_along = (head - _gauss(u - ln)) * (s / safe).astype(ftype)[:, None] if derivatives else None
             if still.any():
-                along = np.where(still[:, None], head / norm, along)
-                d_along = np.where(still[:, None], -u / s**2 * head / norm, d_along)
+                along = np.where(still[:, None], head, along)
+                d_along = np.where(still[:, None], -u * head, d_along) if derivatives else None
+        # In units of s, T = along cross / norm^2, dT/du = d_along cross / (s norm^2) and dT/dv = -v T / s; the
+        # centre moves the pixel by -1: dT/dc = -grad T.
         g = along * cross
-        du = d_along * cross  # dT/du; dT/dv = -v / s^2 T; the centre moves the pixel by -1: dT/dc = -grad T
-        dv = -v / s**2 * g
         total += g
-        gx -= du * ex - dv * ey
-        gy -= du * ey + dv * ex
-    out = total / n_chords, gx / n_chords, gy / n_chords
-    return tuple(a[0] for a in out) if single else out
+        if derivatives:
+            du = d_along * cross
+            dv = v * g
+            gx -= du * ex + dv * ey
+            gy += dv * ex - du * ey
+    scale = 1.0 / (n_chords * norm**2)
+    out = total * ftype(scale), gx * ftype(scale / s), gy * ftype(scale / s)
+    if not derivatives:
+        out = out[0], None, None
+    return tuple(None if a is None else a[0] for a in out) if single else out
 
 
-def _normal(t, tx, ty, flux, w):
-    """Gauss-Newton's Jacobian (C, n, 4) of the model ``b + F T`` in (c_x, c_y, F, b), zero off the pixels ``w``."""
-    return np.stack([flux[:, None] * tx, flux[:, None] * ty, t, np.ones(t.shape)], axis=-1) * w[..., None]
+def _normal_equations(t, tx, ty, flux, w, r=None):
+    """Gauss-Newton's ``J^T J`` (C, 4, 4) and, given residuals ``r`` (C, n), ``J^T r`` (C, 4), float64, of the model
+    ``b + F T`` in (c_x, c_y, F, b) on the pixels ``w`` (C, n): ``J = [F dT/dc_x, F dT/dc_y, T, 1]``, summed in the
+    model's precision (:func:`trail_model`) without its factor F, which is applied to the sums."""
+    k = np.empty((len(t), 4, t.shape[1]), dtype=t.dtype)
+    k[:, 3] = w
+    for i, a in enumerate((tx, ty, t)):
+        np.multiply(a, k[:, 3], out=k[:, i])
+    scale = np.stack([flux, flux, np.ones(len(flux)), np.ones(len(flux))], axis=1)
+    jtj = (k @ k.swapaxes(1, 2)) * scale[:, :, None] * scale[:, None, :]
+    return jtj, None if r is None else (k @ r[:, :, None].astype(t.dtype))[..., 0] * scale
 
 
 def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarray, starts: np.ndarray,
@@ -179,19 +242,18 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
             step = ~done
             if not step.any():
                 break
-            j = _normal(t, tx, ty, flux, w)
-            jt = j.swapaxes(1, 2)
-            jtj = jt @ j
-            jtj[~step] = np.eye(4)
-            delta = np.linalg.solve(jtj + 1e-12 * np.eye(4), jt @ r[..., None])[..., 0]
-            delta[~step] = 0.0
-            rows = np.flatnonzero(step)  # the model is evaluated on the fits still moving only
+            rows = np.flatnonzero(step)  # the fits still moving, the only ones stepped and evaluated
             xs, ys, ws, vs, ks = x[rows], y[rows], w[rows], values[rows], knots[rows]
-            d = delta[rows]
+            jtj, jtr = _normal_equations(t[rows], tx[rows], ty[rows], flux[rows], ws, r[rows])
+            d = np.linalg.solve(jtj + 1e-12 * np.eye(4), jtr[..., None])[..., 0]
+            delta = np.zeros((n, 4))
             t_new, tx_new, ty_new = trail_model(xs, ys, c[rows] + d[:, :2], ks, sigma)
             r_new = (vs - (level[rows] + d[:, 3])[:, None] - (flux[rows] + d[:, 2])[:, None] * t_new) * ws
-            for halving in range(9):  # halve steps that raise a fit's sum of squares (Gauss-Newton overshoots)
-                worse = np.flatnonzero((r_new**2).sum(1) > (r[rows] ** 2).sum(1))
+            before = (r[rows] ** 2).sum(1)
+            for halving in range(9):  # halve steps that raise a fit's sum of squares (Gauss-Newton overshoots);
+                # a step that moves the position by less than MAX_STEP_PX is taken as it is: it has converged, and
+                # the change in the sum of squares is below the float32 model's resolution
+                worse = np.flatnonzero(((r_new**2).sum(1) > before) & np.any(np.abs(d[:, :2]) >= MAX_STEP_PX, axis=1))
                 if len(worse) == 0:
                     break
                 if halving == 8:  # no descent along the step: the fit is stuck, it stops (not converged)
@@ -216,8 +278,7 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
             # A fit that has left its pixels or whose flux fell under the floor is not a star to keep: it stops,
             # not converged.
             done |= step & ~settled & ((np.hypot(*(c - starts).T) > max_shift + SHIFT_PX) | (flux <= floor))
-        j = _normal(t, tx, ty, flux, w)
-        cov = np.where(todo[:, None, None], noise**2 * np.linalg.pinv(j.swapaxes(1, 2) @ j), cov)
+        cov = np.where(todo[:, None, None], noise**2 * np.linalg.pinv(_normal_equations(t, tx, ty, flux, w)[0]), cov)
         if rnd == 1:
             break
         resid = values - level[:, None] - flux[:, None] * t
@@ -240,15 +301,51 @@ def fit_trail(values: np.ndarray, x: np.ndarray, y: np.ndarray, start, knots: np
     return c[0], float(flux[0]), float(level[0]), cov[0], bool(ok[0])
 
 
-def near_path(x: np.ndarray, y: np.ndarray, path: np.ndarray, reach: float) -> np.ndarray:
-    """Whether each pixel (x, y) (n,) lies within ``reach`` px of the polyline ``path`` (K + 1, 2) px."""
-    best = np.full(len(x), np.inf)
-    for a, b in zip(path[:-1], path[1:], strict=True):
-        d = b - a
-        ll = float(d @ d)
-        h = np.zeros(len(x)) if ll == 0 else np.clip(((x - a[0]) * d[0] + (y - a[1]) * d[1]) / ll, 0.0, 1.0)
-        best = np.minimum(best, np.hypot(x - a[0] - h * d[0], y - a[1] - h * d[1]))
-    return best <= reach
+def near_paths(lo: np.ndarray, hi: np.ndarray, paths: np.ndarray, reach: float) -> list[np.ndarray]:
+    """The pixels within ``reach`` px of each polyline ``paths`` (C, P, 2) px inside its box ``lo``..``hi`` (C, 2)
+    (inclusive x, y): one (n, 2) int array of (row, col) per polyline, in raster order.
+
+    Distances are measured (float32, in box coordinates: 1e-5 px) only on the pixels of the strip about each
+    polyline's chord that holds every point within ``reach`` of it (the chord's line +- ``reach`` + the polyline's
+    largest distance from it); boxes of similar area are taken together, ``NEAR_CHUNK_PX`` pixels at a time."""
+    local = (paths - lo[:, None, :]).astype(np.float32)  # box coordinates
+    chord = local[:, -1] - local[:, 0]
+    size = np.hypot(chord[:, 0], chord[:, 1])
+    e = np.where(size[:, None] > 0, chord / np.where(size > 0, size, 1.0)[:, None], np.float32([1.0, 0.0]))
+    normal = np.stack([-e[:, 1], e[:, 0]], axis=1)
+    strip = reach + np.abs(((local - local[:, :1]) * normal[:, None]).sum(axis=2)).max(axis=1)
+    start, d = local[:, :-1], np.diff(local, axis=1)  # (C, P - 1, 2) segments
+    ll = (d**2).sum(axis=2)
+    inv = np.where(ll > 0, 1.0 / np.where(ll > 0, ll, 1.0), 0.0).astype(np.float32)  # a point segment: its start
+    area = np.prod(hi - lo + 1, axis=1)
+    out: list[np.ndarray] = [np.zeros((0, 2), dtype=np.int64)] * len(lo)
+    order = np.argsort(area, kind="stable")
+    first = 0
+    while first < len(order):
+        stop = first + 1
+        while stop < len(order) and (stop + 1 - first) * area[order[stop]] <= NEAR_CHUNK_PX:
+            stop += 1
+        part, first = order[first:stop], stop
+        w, h = (hi[part] - lo[part] + 1).max(axis=0)
+        x = np.arange(w, dtype=np.float32)[None, None, :]
+        y = np.arange(h, dtype=np.float32)[None, :, None]
+        ox, oy, nx, ny = (v[part, None, None] for v in (local[:, 0, 0], local[:, 0, 1], *normal.T))
+        band = np.abs((x - ox) * nx + (y - oy) * ny) <= strip[part, None, None]
+        band &= (x <= (hi - lo)[part, 0, None, None]) & (y <= (hi - lo)[part, 1, None, None])
+        g, r, c = np.nonzero(band)
+        px, py = c.astype(np.float32), r.astype(np.float32)
+        best = np.full(len(g), np.inf, dtype=np.float32)
+        who = part[g]
+        for k in range(d.shape[1]):
+            ax, ay, dx, dy = start[who, k, 0], start[who, k, 1], d[who, k, 0], d[who, k, 1]
+            along = np.clip(((px - ax) * dx + (py - ay) * dy) * inv[who, k], 0.0, 1.0)
+            np.minimum(best, np.hypot(px - ax - along * dx, py - ay - along * dy), out=best)
+        near = best <= reach
+        g, rows, cols = g[near], r[near] + lo[who[near], 1], c[near] + lo[who[near], 0]
+        pieces = np.split(np.stack([rows, cols], axis=1), np.cumsum(np.bincount(g, minlength=len(part)))[:-1])
+        for j, piece in zip(part, pieces, strict=True):
+            out[j] = piece
+    return out
 
 
 class TrailFitDeblurrer:
@@ -279,13 +376,16 @@ class TrailFitDeblurrer:
 
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         cam = step.cameras[head]
-        found = frame_streaks(image, head, step, self.psf_sigma_px, self.threshold_sigma, self.min_area_px)
+        found = frame_streaks(image, head, step, self.psf_sigma_px, self.threshold_sigma, self.min_area_px,
+                              drop_points=True)
         data, sigma, noise, centres, peaks = found.data, found.sigma, found.noise, found.centroids, found.peaks
         self.last_info = {"candidates": int(len(centres)), "kept": 0, "position_sigma_px": None}
-        out = data.copy()
+        # found.data is the float64 copy of an integer frame: the output is written on it, unless it is the
+        # caller's own array.
+        out = data.copy() if np.may_share_memory(data, image) else data
         if len(centres) == 0:
             return out
-        full_scale = float(data.max()) if _is_full_scale(data) else math.inf
+        full_scale = _full_scale(data)
         t0, t1 = window(step)
         paths = star_paths(cam, step.gyro, t0, t1, centres)
         mid = paths.shape[1] // 2
@@ -293,45 +393,45 @@ class TrailFitDeblurrer:
         # centre's) streak, at the component's centroid where it is longer (about the boresight the centre's streak
         # is a point and the response of an arc has a plateau).
         length = np.linalg.norm(np.diff(paths, axis=1), axis=2).sum(axis=1)
-        centre_length = float(np.linalg.norm(np.diff(exposure_path(step, head), axis=0), axis=1).sum())
+        centre_length = float(np.linalg.norm(np.diff(found.streak_path, axis=0), axis=1).sum())
         centres = np.where((length <= 1.25 * centre_length + 2.0)[:, None], peaks, centres)
         reach = PSF_REACH_SIGMA * sigma + SHIFT_PX
         height, width = data.shape
-        cands = []  # (index, knots, rows, cols, along (2,) unit vector, along slack px) of each with enough pixels
-        for i in np.flatnonzero(length >= self.min_trail_px):
-            knots = chords(paths[i] - paths[i, mid])
-            # The filter locates a trail's centre well across it, to a fraction of its length along it: the pixels
-            # reach ALONG_FRACTION of the length beyond each end, so a fit started off-centre along the trail finds
-            # its ends.
+        # The filter locates a trail's centre well across it, to a fraction of its length along it: the pixels
+        # reach ALONG_FRACTION of the length beyond each end, so a fit started off-centre along the trail finds its
+        # ends.
+        trails = []  # (index, knots, along (2,) unit vector, along slack px, polyline, lo, hi) of each in its box
+        long = np.flatnonzero(length >= self.min_trail_px)
+        for i, knots in zip(long, chords(paths[long] - paths[long, mid : mid + 1]), strict=True):
             chord = knots[-1] - knots[0]
             along = chord / max(float(np.hypot(*chord)), 1e-9)
             slack = ALONG_FRACTION * float(length[i])
             ends = np.vstack([knots[0] - slack * along, knots, knots[-1] + slack * along])
             lo = np.floor(centres[i] + ends.min(axis=0) - reach).astype(np.int64)
             hi = np.ceil(centres[i] + ends.max(axis=0) + reach).astype(np.int64)
-            if np.any(hi - lo + 1 > self.max_box_px):
-                continue
-            lo = np.maximum(lo, 0)
-            hi = np.minimum(hi, [width - 1, height - 1])
-            yy, xx = np.mgrid[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
-            keep = near_path(xx.ravel().astype(np.float64), yy.ravel().astype(np.float64), centres[i] + ends, reach)
-            keep &= data[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1].ravel() < full_scale
-            if keep.sum() >= 8:
-                cands.append((i, knots, yy.ravel()[keep], xx.ravel()[keep], along, slack))
+            if np.all(hi - lo + 1 <= self.max_box_px):
+                trails.append((i, knots, along, slack, centres[i] + ends, np.maximum(lo, 0),
+                               np.minimum(hi, [width - 1, height - 1])))
+        cands = []  # (index, knots, rows, cols, along, slack) of each with enough pixels
+        for n_ends in sorted({len(tr[4]) for tr in trails}):  # near_paths per polyline length
+            group = [tr for tr in trails if len(tr[4]) == n_ends]
+            pixels = near_paths(np.array([tr[5] for tr in group]), np.array([tr[6] for tr in group]),
+                                np.array([tr[4] for tr in group]), reach)
+            for (i, knots, along, slack, *_), rc in zip(group, pixels, strict=True):
+                if full_scale < math.inf:
+                    rc = rc[data[rc[:, 0], rc[:, 1]] < full_scale]
+                if len(rc) >= 8:
+                    cands.append((i, knots, rc[:, 0], rc[:, 1], along, slack))
+        cands.sort(key=lambda cd: cd[0])
         fits = []  # (flux, index, centre, knots, rows, cols, position sigma) of the fits kept
         for n_knots in sorted({len(cd[1]) for cd in cands}):  # one batch per chord count
             group = [cd for cd in cands if len(cd[1]) == n_knots]
-            size = max(len(cd[2]) for cd in group)
-            rows = np.zeros((len(group), size), dtype=np.int64)
-            cols = np.zeros((len(group), size), dtype=np.int64)
-            valid = np.zeros((len(group), size), dtype=bool)
-            for g, (_, _, r, cl, _, _) in enumerate(group):
-                rows[g, : len(r)], cols[g, : len(r)], valid[g, : len(r)] = r, cl, True
+            rows, cols, valid = _padded([cd[2] for cd in group], [cd[3] for cd in group])
             idx = np.array([cd[0] for cd in group])
             knots = np.stack([cd[1] for cd in group])
             along = np.stack([cd[4] for cd in group])
             slack = np.array([cd[5] for cd in group])
-            c, flux, _, cov, ok = fit_trails(data[rows, cols], cols.astype(np.float64), rows.astype(np.float64),
+            c, flux, _, cov, ok = fit_trails(data[rows, cols], cols.astype(np.float32), rows.astype(np.float32),
                                              valid, centres[idx], knots, sigma, noise,
                                              outlier_sigma=self.outlier_sigma, min_snr=self.min_snr,
                                              max_shift_px=SHIFT_PX + slack)
@@ -345,21 +445,47 @@ class TrailFitDeblurrer:
             for g in np.flatnonzero(good):
                 fits.append((flux[g], idx[g], c[g], knots[g], group[g][2], group[g][3],
                              math.sqrt(max(0.5 * (cov[g, 0, 0] + cov[g, 1, 1]), 0.0))))
-        kept = []  # brightest first; a fit that lands on a brighter one's star (a trail found twice) is dropped
-        for fit in sorted(fits, key=lambda f: -f[0]):
-            if all(np.hypot(*(fit[2] - k[2])) > SHIFT_PX for k in kept):
-                kept.append(fit)
-        for flux, _, c, knots, rows, cols, _ in kept:
+        # Brightest first; a fit that lands on a brighter one's star (a trail found twice) is dropped.
+        fits.sort(key=lambda f: -f[0])
+        at = np.array([f[2] for f in fits]).reshape(-1, 2)
+        close = np.hypot(*(at[:, None] - at[None]).transpose(2, 0, 1)) <= SHIFT_PX
+        taken = np.zeros(len(fits), dtype=bool)
+        for a in range(len(fits)):
+            taken[a] = not (close[a, :a] & taken[:a]).any()
+        kept = [fit for fit, keep in zip(fits, taken, strict=True) if keep]
+        changes = [None] * len(kept)  # each kept fit's F (S - T) on its pixels, the fits of one chord count at once
+        for n_knots in sorted({len(k[3]) for k in kept}):
+            group = [i for i, k in enumerate(kept) if len(k[3]) == n_knots]
+            rows, cols, _ = _padded([kept[i][4] for i in group], [kept[i][5] for i in group])
             x, y = cols.astype(np.float64), rows.astype(np.float64)
-            trail = trail_model(x, y, c, knots, sigma)[0]
-            still = trail_model(x, y, c, np.zeros((2, 2)), sigma)[0]
-            out[rows, cols] += flux * (still - trail)
+            c = np.array([kept[i][2] for i in group])
+            trail = trail_model(x, y, c, np.stack([kept[i][3] for i in group]), sigma, derivatives=False)[0]
+            still = trail_model(x, y, c, np.zeros((len(group), 2, 2)), sigma, derivatives=False)[0]
+            for g, i in enumerate(group):
+                size = len(kept[i][4])
+                changes[i] = kept[i][0] * (still[g, :size] - trail[g, :size])
+        if kept:  # added in the fits' order, as one pixel after another
+            np.add.at(out, (np.concatenate([k[4] for k in kept]), np.concatenate([k[5] for k in kept])),
+                      np.concatenate(changes))
         sigmas = [k[6] for k in kept]
         self.last_info.update(kept=len(sigmas), position_sigma_px=float(np.median(sigmas)) if sigmas else None)
         return out
 
 
-def _is_full_scale(data: np.ndarray) -> bool:
-    """Whether the frame's maximum is an ADC's full-scale code ``2^n - 1`` (n = 8..16): saturated pixels."""
+def _padded(rows: list[np.ndarray], cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel lists of several fits side by side: rows, columns (C, n) int, zero-padded to the longest, and which
+    are real (C, n)."""
+    size = max(len(r) for r in rows)
+    out_rows = np.zeros((len(rows), size), dtype=np.int64)
+    out_cols = np.zeros((len(rows), size), dtype=np.int64)
+    valid = np.zeros((len(rows), size), dtype=bool)
+    for g, (r, cl) in enumerate(zip(rows, cols, strict=True)):
+        out_rows[g, : len(r)], out_cols[g, : len(r)], valid[g, : len(r)] = r, cl, True
+    return out_rows, out_cols, valid
+
+
+def _full_scale(data: np.ndarray) -> float:
+    """The frame's maximum (DN) where it is an ADC's full-scale code ``2^n - 1`` (n = 8..16): saturated pixels;
+    else inf."""
     top = float(data.max())
-    return any(top == 2**n - 1 for n in range(8, 17))
+    return top if any(top == 2**n - 1 for n in range(8, 17)) else math.inf

@@ -14,6 +14,9 @@ against the global noise at 5 sigma of the filtered noise (faster).  Its positio
 frame (CentroidDetector leaves out stars cut by the border by design) and of all detectable stars, precision of the
 detections, mean centroid error of each detector's matched stars and of the stars both matched.
 
+"linked streaks" is CentroidDetector with ``link_streaks=True`` (the pieces of faint trails that noise broke joined
+into one star).
+
 ``--profile`` prints where CentroidDetector's time goes (cProfile, internal time).
 
     python -m pip install sep        # benchmark-only dependency (the ``bench`` extra)
@@ -130,20 +133,24 @@ def main() -> None:
     for rate in RATES_DPS:
         data, head = frames(rate, args.frames)
         images, truths = [d[0] for d in data], [d[1] for d in data]
-        ours = CentroidDetector()
+        ours, linked = CentroidDetector(), CentroidDetector(link_streaks=True)
 
         def our_detect(image, ours=ours, camera=head.calibrated):
             return ours.detect(image, camera).xy
 
+        def linked_detect(image, linked=linked, camera=head.calibrated):
+            return linked.detect(image, camera).xy
+
         fns = {"CentroidDetector": our_detect, "SEP matched": sep_detector(head.psf_sigma_px, True),
-               "SEP default": sep_detector(head.psf_sigma_px, False)}
+               "SEP default": sep_detector(head.psf_sigma_px, False), "linked streaks": linked_detect}
         times = median_times(list(fns.values()), images, args.repeats)
         found = scores({name: [fn(im) for im in images] for name, fn in fns.items()}, truths)
         for name, t in zip(fns, times, strict=True):
             recall, recall_all, precision, error, common = found[name]
             print(f"{rate:6.1f}/s {name:>17} {t * 1e3:9.2f} {recall:7.3f} {recall_all:6.3f} {precision:9.3f} "
                   f"{error:11.3f} {common:8.3f}")
-        print(f"{'':8} {'ratio to SEP':>17} {times[0] / times[1]:9.2f} (matched) {times[0] / times[2]:.2f} (default)")
+        for k, name in ((0, "ratio to SEP"), (3, "linked / SEP")):
+            print(f"{'':8} {name:>17} {times[k] / times[1]:9.2f} (matched) {times[k] / times[2]:.2f} (default)")
         if args.profile:
             profile = cProfile.Profile()
             profile.enable()

@@ -138,6 +138,54 @@ def test_smeared_trail_centroid_is_the_trail_centroid(trail):
             assert np.hypot(*(stars.xy[0] - truth)) <= 0.1, method
 
 
+def broken_trails(cuts_px, offset_px=40.0):
+    """A noise-free frame with a bright 40 px trail along x and, ``offset_px`` below it, a faint parallel one from
+    which the columns within 2.5 px of each of ``cuts_px`` (px along the faint trail from its centroid) are cut (set
+    to the bias), as noise breaks a faint trail; returns the frame and the faint trail's truth centroid."""
+    rate = (0.0, 40.0 * CAM.pixel_pitch_m / CAM.focal_length_m / EXPOSURE, 0.0)
+    centre = np.array([CAM.cx, CAM.cy])
+    frame = render([centre, centre + [0.0, offset_px]], [1.0, 3.0], rate)
+    faint = frame.truth.xy_centroid[1]
+    image = expected_dn(frame.signal)
+    assert abs(frame.truth.xy_end[1, 1] - frame.truth.xy_start[1, 1]) < 0.5  # the trail runs along x
+    rows = slice(round(faint[1]) - 5, round(faint[1]) + 6)
+    for cut in cuts_px:
+        columns = np.abs(np.arange(CAM.width) - (faint[0] + cut)) <= 2.5
+        image[rows, columns] = QUIET.bias_dn
+    return image, faint
+
+
+def test_streak_linking_joins_the_pieces_of_a_broken_trail_at_its_centroid():
+    # Cuts symmetric about the centroid leave pieces whose flux-weighted mean centroid is the trail's.
+    image, faint = broken_trails([-8.0, 8.0])
+    pieces = CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)
+    assert np.sum(np.abs(pieces.xy[:, 1] - faint[1]) < 3.0) == 3
+    joined = CentroidDetector(psf_sigma_px=SIGMA, link_streaks=True).detect(image, CAM)
+    on_faint = np.abs(joined.xy[:, 1] - faint[1]) < 3.0
+    assert on_faint.sum() == 1
+    assert np.hypot(*(joined.xy[on_faint][0] - faint)) <= 0.3
+    # The bright trail, the guide, is left as it was.
+    assert np.allclose(joined.xy[~on_faint], pieces.xy[np.abs(pieces.xy[:, 1] - faint[1]) >= 3.0])
+
+
+def test_streak_linking_leaves_breaks_longer_than_its_gap_and_parallel_trails_apart():
+    # A 20 px break is beyond LINK_GAP_SIGMAS (6 PSF sigmas, ~5 px): two pieces stay two detections.
+    image, faint = broken_trails([-10.0, -5.0, 0.0, 5.0])
+    stars = CentroidDetector(psf_sigma_px=SIGMA, link_streaks=True).detect(image, CAM)
+    assert np.sum(np.abs(stars.xy[:, 1] - faint[1]) < 3.0) == 2
+    # Parallel trails 6 px apart are not one trail.
+    image, faint = broken_trails([], offset_px=6.0)
+    assert len(CentroidDetector(psf_sigma_px=SIGMA, link_streaks=True).detect(image, CAM)) == 2
+
+
+def test_streak_linking_changes_nothing_on_a_still_frame():
+    truth_frame = render([[100.0, 100.0], [105.0, 100.0], [300.0, 200.0]], [4.0, 5.0, 3.0])
+    image = read_out(truth_frame.signal, 0)
+    plain = CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)
+    linked = CentroidDetector(psf_sigma_px=SIGMA, link_streaks=True).detect(image, CAM)
+    assert len(plain) == 3 and np.array_equal(plain.xy, linked.xy)
+
+
 def score(stars, truth, camera, inner_px=8.0):
     """Recall of the detectable stars that stand alone (no other star within 4 px: closer pairs blend at this PSF)
     and clear of the border, precision of the detections (any rendered star within the gate) and the centroid errors
@@ -286,6 +334,7 @@ def test_background_follows_a_gradient_and_measures_the_noise():
         ("keep_edge", None),
         ("saturation_dn", 70000),
         ("max_stars", 0),
+        ("link_streaks", 1),
     ],
 )
 def test_bad_options_are_refused_by_name(option, value):

@@ -6,7 +6,8 @@ from starenv.bench.report import headline, working_limit, working_rates
 def case(scenario, pipeline, avail, err, lat, key="", value="", fixed=None):
     """A summary row; its share of fixes is its availability unless given."""
     return {"scenario": scenario, "sweep_key": key, "sweep_value": value, "pipeline": pipeline, "runs": 1, "steps": 10,
-            "within_threshold": avail, "fixed": avail if fixed is None else fixed, "attitude_error_arcsec_median": err, "attitude_error_arcsec_p95": 2 * err,
+            "within_threshold": avail, "fixed": avail if fixed is None else fixed,
+            "attitude_error_arcsec_median": err, "attitude_error_arcsec_p95": 2 * err,
             "latency_pipeline_ms_median": lat}
 
 

@@ -2,10 +2,9 @@
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
 from starenv.scoring import attitude_error, score_stars, summarize, trail_distance
 from starenv.sim.conventions import ARCSEC

@@ -28,6 +28,10 @@ the iterations of a Gaussian fit made for all stars at once.
    flux-weighted trail centroid; saturated blobs are not fitted (the centre of gravity of a clipped symmetric spot is
    still its centre).
 
+7. Streak linking (``link_streaks=True``): the pieces into which noise breaks a faint trail, lying along the local
+   direction of motion that the nearest long streak gives, with short breaks between them, are joined into one
+   star (see :func:`_link_streaks`).  Off by default: it matters only where trails are many PSF widths long.
+
 Flux is the sum of background-subtracted DN over the grown blob.  Stars whose grown blob touches the image border are
 cut by it (centroid pulled inwards, flux short) and are left out unless ``keep_edge=True``.  Stars closer than about
 5 PSF sigmas merge into one detection.
@@ -39,7 +43,9 @@ import math
 
 import cv2
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from scipy.special import erf, ndtr
 
 from starenv import checks
@@ -59,6 +65,10 @@ QUANTISATION_NOISE_DN = 1.0 / math.sqrt(12.0)  # noise floor: the rounding of an
 LINE_SIGNIFICANCE = 3.0  # the track test decides only where a star would pass it by this many errors
 PAIR_STEPS = np.array([(1, 0), (1, 1), (0, 1), (-1, 1)])  # pixel steps along 0, 45, 90, 135 deg (x right, y down)
 STREAK_ANISOTROPY_PX2 = 2.0  # blob-mask variance along minus across its axis above which a blob is a streak
+LINK_ACROSS_SIGMAS = 1.5  # streak linking: the most a piece's centre may lie off the streak's axis, in PSF sigmas
+LINK_GAP_SIGMAS = 6.0  # streak linking: the longest break between two pieces of one trail, in PSF sigmas
+LINK_ANGLE_DEG = 15.0  # streak linking: the most two streak pieces' axes may differ
+LINK_MIN_HALF_SIGMAS = 3.0  # streak linking: the least half-length (PSF sigmas) of a streak giving the motion's way
 FIT_ITERATIONS = 30  # at most; the fit stops once no centre moves by FIT_TOLERANCE_PX
 FIT_TOLERANCE_PX = 1e-4
 MAX_LABELS = 2**24  # labels are carried in float32 images, exact up to here
@@ -156,6 +166,7 @@ class CentroidDetector:
     * ``saturation_dn``: pixel value (DN) at and above which a pixel is saturated; None: the image's maximum when it
       is a full-scale code ``2^n - 1`` (n = 8 .. 16), else none.
     * ``max_stars``: report at most this many stars (the brightest); None: all.
+    * ``link_streaks``: join the pieces of faint trails that noise broke (step 7 of the module docstring).
 
     The constants that follow from a PSF sigma (matched filter, sharpness limits) are computed once per sigma.
     """
@@ -176,6 +187,7 @@ class CentroidDetector:
         keep_edge: bool = False,
         saturation_dn: int | None = None,
         max_stars: int | None = None,
+        link_streaks: bool = False,
     ):
         self.method = checks.choice("method", method, METHODS)
         self.threshold_sigma = checks.in_range("threshold_sigma", threshold_sigma, 0.0, 100.0, low_open=True)
@@ -195,6 +207,7 @@ class CentroidDetector:
         self.keep_edge = _flag("keep_edge", keep_edge)
         self.saturation_dn = None if saturation_dn is None else checks.integer("saturation_dn", saturation_dn, 1, 65535)
         self.max_stars = None if max_stars is None else checks.integer("max_stars", max_stars, 1, 10**8)
+        self.link_streaks = _flag("link_streaks", link_streaks)
 
         self._psf_constants: dict[float, _Psf] = {}
         self._work: _Workspace | None = None
@@ -261,7 +274,8 @@ class CentroidDetector:
         if self.reject_sharp:
             good &= self._not_sharp(blobs, resid, noise, psf) & ~self._track_remnant(grown, n, removed, blobs.flux)
 
-        streak = blobs.mask_anisotropy() > STREAK_ANISOTROPY_PX2
+        centre, axis, var_major, var_minor = blobs.mask_axes()
+        streak = var_major - var_minor > STREAK_ANISOTROPY_PX2
         xy = blobs.centroid(blobs.positive)
         if self.method == "iwcog":
             weighted = ~streak
@@ -273,8 +287,11 @@ class CentroidDetector:
                 saturated = np.bincount(blobs.label, image.ravel()[blobs.pixel] >= saturation, n) > 0
             fit = np.flatnonzero(good & ~streak & ~saturated)
             xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit], psf)
-        order = np.flatnonzero(good)[np.argsort(-blobs.flux[good], kind="stable")][: self.max_stars]
-        return StarMeasurements(xy[order], blobs.flux[order])
+        flux = blobs.flux
+        if self.link_streaks:
+            xy, flux, good = _link_streaks(xy, flux, good, streak, centre, axis, var_major, psf.sigma_eff)
+        order = np.flatnonzero(good)[np.argsort(-flux[good], kind="stable")][: self.max_stars]
+        return StarMeasurements(xy[order], flux[order])
 
     def background(self, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Local background level and noise (DN) of a float32 image, both float32 (H, W): on tiles of about
@@ -643,6 +660,54 @@ class _Workspace:
         return self._arrays[key]
 
 
+def _link_streaks(xy, flux, good, streak, centre, axis, var_major, sigma_px):
+    """Join the pieces of one trail that noise broke below the threshold.
+
+    Every good blob takes the direction of the nearest streak at least LINK_MIN_HALF_SIGMAS PSF sigmas in
+    half-length (a blob's mask taken as a uniform segment of half-length sqrt(3 var_major)): the local direction of
+    motion.  Two good blobs are pieces of one trail when the line between their mask centres runs along the direction
+    of either (off it by no more than LINK_ACROSS_SIGMAS PSF sigmas) with no more than LINK_GAP_SIGMAS PSF sigmas
+    between their ends, and, where both are streaks, their own axes agree within LINK_ANGLE_DEG.  A joined trail keeps
+    its first piece's index, with the flux-weighted mean of its pieces' centroids (their union's centre of gravity)
+    and the sum of their fluxes; the other pieces are marked not good.  Arrays are returned anew."""
+    index = np.flatnonzero(good)
+    half = np.sqrt(3.0 * np.maximum(var_major, 0.0))
+    guide = index[streak[index] & (half[index] >= LINK_MIN_HALF_SIGMAS * sigma_px)]
+    if len(guide) == 0 or len(index) < 2:
+        return xy, flux, good
+    direction = axis.copy()
+    direction[index] = axis[guide[cKDTree(centre[guide]).query(centre[index])[1]]]
+    gap = LINK_GAP_SIGMAS * sigma_px
+    pairs = cKDTree(centre[index]).query_pairs(2.0 * float(half[index].max()) + gap, output_type="ndarray")
+    i, j = index[pairs[:, 0]], index[pairs[:, 1]]
+    d = centre[j] - centre[i]
+    link = np.zeros(len(i), bool)
+    for u in (direction[i], direction[j]):
+        along = np.abs(np.einsum("ij,ij->i", d, u))
+        across = np.abs(d[:, 0] * u[:, 1] - d[:, 1] * u[:, 0])
+        link |= (across <= max(LINK_ACROSS_SIGMAS * sigma_px, 1.0)) & (along - half[i] - half[j] <= gap)
+    aligned = np.abs(np.einsum("ij,ij->i", axis[i], axis[j])) >= math.cos(math.radians(LINK_ANGLE_DEG))
+    link &= aligned | ~(streak[i] & streak[j])
+    if not link.any():
+        return xy, flux, good
+    n = len(xy)
+    graph = sparse.coo_matrix((np.ones(int(link.sum())), (i[link], j[link])), shape=(n, n))
+    _, group = connected_components(graph, directed=False)
+    weight = np.where(good, np.maximum(flux, 0.0), 0.0)
+    total = np.bincount(group, weight, n)
+    first = np.full(n, n)
+    np.minimum.at(first, group[index], index)
+    joined_xy = np.column_stack([np.bincount(group, weight * xy[:, k], n) for k in (0, 1)])
+    joined_xy /= np.where(total > 0, total, 1.0)[:, None]
+    xy, flux, good = xy.copy(), flux.copy(), good.copy()
+    flux[index] = np.bincount(group, np.where(good, flux, 0.0), n)[group[index]]
+    several = np.bincount(group[index], minlength=n)[group[index]] > 1
+    usable = several & (total[group[index]] > 0)
+    xy[index[usable]] = joined_xy[group[index[usable]]]
+    good[index] = first[group[index]] == index
+    return xy, flux, good
+
+
 class _Blobs:
     """The pixels of the grown blobs as flat arrays (blob index, pixel index, x, y, residual and smoothed DN, whether
     in the un-grown blob), with each blob's flux (DN) and peak pixel (brightest of the un-grown blob)."""
@@ -675,12 +740,16 @@ class _Blobs:
         sums = [np.bincount(self.label, weight * c, self.n) for c in (self.x, self.y)]
         return np.column_stack(sums) / total[:, None]
 
-    def mask_anisotropy(self) -> np.ndarray:
-        """Variance (px^2) of each un-grown blob's pixel mask along its major axis minus that along its minor axis."""
+    def mask_axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Shape of each un-grown blob's pixel mask: centre (n, 2) px, unit major axis (n, 2), variance (px^2) along
+        the major axis and along the minor one (n,)."""
         lab = self.label[self.in_core]
         x, y = self.x[self.in_core], self.y[self.in_core]
         count = np.bincount(lab, minlength=self.n)
-        dx = x - (np.bincount(lab, x, self.n) / count)[lab]
-        dy = y - (np.bincount(lab, y, self.n) / count)[lab]
+        centre = np.column_stack([np.bincount(lab, x, self.n), np.bincount(lab, y, self.n)]) / count[:, None]
+        dx, dy = x - centre[lab, 0], y - centre[lab, 1]
         sxx, syy, sxy = (np.bincount(lab, a * b, self.n) / count for a, b in ((dx, dx), (dy, dy), (dx, dy)))
-        return np.hypot(sxx - syy, 2.0 * sxy)
+        half_spread = 0.5 * np.hypot(sxx - syy, 2.0 * sxy)
+        angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)
+        mean = 0.5 * (sxx + syy)
+        return centre, np.column_stack([np.cos(angle), np.sin(angle)]), mean + half_spread, mean - half_spread

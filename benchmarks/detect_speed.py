@@ -19,7 +19,7 @@ into one star).
 
 ``--profile`` prints where CentroidDetector's time goes (cProfile, internal time).
 
-    python -m pip install sep        # benchmark-only dependency (the ``bench`` extra)
+    python -m pip install -e ".[bench]"   # SEP, a benchmark-only dependency
     python benchmarks/detect_speed.py [--frames N] [--repeats N] [--profile]
 """
 

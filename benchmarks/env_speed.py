@@ -1,12 +1,17 @@
 """Environment speed: steps/s of the 512 x 512 seed-000 scenario with a do-nothing action on one core, and the
 speed-up of an async vector env with 2 workers over that single env (measured in the same run), observations through
-shared memory (Gymnasium's default) and pickled; then a cProfile of single-env steps.
+shared memory (Gymnasium's default), pickled, and through shared memory with each worker prefetching its next frame
+(``prefetch=True``: simulated while the main process handles the last step); one env driven by the scenario's own
+pipeline, with and without prefetch (the next frame simulated on a thread while the pipeline works); then a cProfile
+of single-env steps.
 
 Goals: >= 300 steps/s; >= 1.8x with 2 workers.  The machines are shared: each figure is the median of ``--repeats``
 rounds, every round timing all variants back to back, and the floor of a step (one float32 standard normal per pixel
 of the frame with numpy's Generator, the read-out's noise draw) is timed in the same rounds, alone and in two processes
 at once: the second gives the ceiling any 2-worker speed-up has on this machine (two cores that share a physical core
-or memory bandwidth give less than 2x); the 1-minute load average is printed before and after.
+or memory bandwidth give less than 2x).  The CPU time per env step of the vector env's workers and main process is
+printed beside the single env's: two cores cannot run more than 2 / (their sum) env steps a second, whatever the
+schedule.  The 1-minute load average is printed before and after.
 
     python benchmarks/env_speed.py [--steps N] [--repeats N] [--profile-steps N]
 """
@@ -29,35 +34,66 @@ import starenv  # noqa: F401  (registers the ids)
 ENV_ID = "StarEnv/Paper000-v0"
 
 
-def single(steps: int) -> float:
-    """Steps/s of one env."""
+def single(steps: int) -> tuple[float, float]:
+    """Steps/s of one env, and its CPU time (s) per step."""
     env = gym.make(ENV_ID)
     action = env.unwrapped.null_action()  # the same (empty) action the vector env sends
     env.reset(seed=0)
     env.step(action)
-    t0 = time.perf_counter()
+    cpu, t0 = time.process_time(), time.perf_counter()
     for _ in range(steps):
         _, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             env.reset()
     rate = steps / (time.perf_counter() - t0)
+    cpu = (time.process_time() - cpu) / steps
     env.close()
-    return rate
+    return rate, cpu
 
 
-def vector(steps: int, workers: int, shared_memory: bool) -> float:
-    """Steps/s (all workers) of an async vector env."""
+def vector(steps: int, workers: int, shared_memory: bool, prefetch: bool = False) -> tuple[float, float, float]:
+    """Steps/s (all workers) of an async vector env, and the CPU time (s) per env step of the main process and of
+    the workers (their env step, the pipes, the shared memory; with their set-up and ``steps = 0``'s share of it
+    taken off by the caller); ``prefetch``: each worker's env simulates its next frame while the main process
+    handles the last one."""
+    before = os.times()
     envs = gym.make_vec(ENV_ID, num_envs=workers, vectorization_mode="async",
-                        vector_kwargs={"shared_memory": shared_memory})
+                        vector_kwargs={"shared_memory": shared_memory}, prefetch=prefetch)
     template = envs.env_fns[0]().unwrapped.null_action()
     action = {k: np.stack([v] * workers) for k, v in template.items()}
     envs.reset(seed=0)
     envs.step(action)
-    t0 = time.perf_counter()
+    main_cpu, t0 = time.process_time(), time.perf_counter()
     for _ in range(steps):
         envs.step(action)  # autoreset handles episode ends
-    rate = steps * workers / (time.perf_counter() - t0)
-    envs.close()
+    rate = steps * workers / max(time.perf_counter() - t0, 1e-9)
+    main_cpu = time.process_time() - main_cpu
+    envs.close()  # a worker's CPU time is counted once it has exited
+    after = os.times()
+    worker_cpu = (after.children_user + after.children_system) - (before.children_user + before.children_system)
+    return rate, main_cpu / max(steps * workers, 1), worker_cpu / max(steps * workers, 1)
+
+
+def with_pipeline(steps: int, prefetch: bool) -> float:
+    """Steps/s of one env driven by the scenario's own classical pipeline (OpenCV held to one thread)."""
+    import cv2
+
+    from starenv.agents.pipeline import Pipeline
+
+    cv2.setNumThreads(1)
+    env = gym.make(ENV_ID, prefetch=prefetch)
+    pipeline = Pipeline.for_scenario(env.unwrapped.scenario)
+    obs, _ = env.reset(seed=0)
+    pipeline.reset(env.unwrapped.sensor_info)
+    obs, *_ = env.step(pipeline(obs))
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        obs, _, terminated, truncated, _ = env.step(pipeline(obs))
+        if terminated or truncated:
+            obs, _ = env.reset()
+            pipeline.reset(env.unwrapped.sensor_info)
+    rate = steps / (time.perf_counter() - t0)
+    env.close()
     return rate
 
 
@@ -104,25 +140,38 @@ def main() -> None:
     args = parser.parse_args()
     shape = gym.make(ENV_ID).observation_space["frames"].shape[1:]
     load_before = os.getloadavg()[0]
+    set_up = vector(0, 2, True)[2]  # the workers' CPU time to start, reset and take one step, per env
     rounds = []
     for _ in range(args.repeats):
+        one, one_cpu = single(args.steps)
+        shared, main_cpu, worker_cpu = vector(args.steps, 2, True)
         rounds.append({
             "floor": floor_rate(shape, args.steps), "floor x2": parallel_floor(shape, args.steps),
-            "single": single(args.steps),
-            "shared": vector(args.steps, 2, True), "pickled": vector(args.steps, 2, False),
+            "single": one, "single cpu": one_cpu, "shared": shared, "main cpu": main_cpu,
+            "worker cpu": worker_cpu - set_up / (2 * args.steps),
+            "pickled": vector(args.steps, 2, False)[0], "prefetch": vector(args.steps, 2, True, prefetch=True)[0],
+            "pipeline": with_pipeline(args.steps // 3, False),
+            "pipeline prefetch": with_pipeline(args.steps // 3, True),
         })
     median = {k: float(np.median([r[k] for r in rounds])) for k in rounds[0]}
     ratio = {k: float(np.median([r[k] / r["single"] for r in rounds])) for k in rounds[0]}
     ceiling = float(np.median([r["floor x2"] / r["floor"] for r in rounds]))
+    # Two cores run the workers' and the main process's CPU time per env step: no schedule beats 2 / their sum.
+    cpu_bound = float(np.median([2.0 / (r["main cpu"] + r["worker cpu"]) / r["single"] for r in rounds]))
     print(f"load average (1 min): {load_before:.2f} before, {os.getloadavg()[0]:.2f} after, on {os.cpu_count()} cores; "
           f"medians of {args.repeats} rounds of {args.steps} steps")
     print(f"noise floor ({shape[0]}x{shape[1]} float32 normals): {median['floor']:8.1f} frames/s")
     print(f"single env, do-nothing action:    {median['single']:8.1f} steps/s   (goal >= 300) = "
           f"{ratio['floor']:.2f} x the floor's time")
     print(f"noise floor in 2 processes at once: {ceiling:.2f} x one process (the ceiling of a 2-worker speed-up here)")
-    for key, label in (("shared", "shared memory"), ("pickled", "pickled     ")):
+    for key, label in (("shared", "shared memory"), ("pickled", "pickled     "), ("prefetch", "+ prefetch   ")):
         print(f"async vector env, 2 workers, {label}: {median[key]:8.1f} steps/s = {ratio[key]:.2f} x single "
               f"(goal >= 1.8; {ratio[key] / ceiling:.2f} of the ceiling)")
+    print(f"CPU time per env step: single env {median['single cpu'] * 1e3:.2f} ms; in the vector env (shared memory) "
+          f"worker {median['worker cpu'] * 1e3:.2f} ms + main process {median['main cpu'] * 1e3:.2f} ms: on 2 cores "
+          f"at most {cpu_bound:.2f} x single")
+    print(f"single env + the scenario's pipeline: {median['pipeline']:8.1f} steps/s; with prefetch "
+          f"{median['pipeline prefetch']:.1f} steps/s = {ratio['pipeline prefetch'] / ratio['pipeline']:.2f} x")
     print(f"\nprofile of {args.profile_steps} single-env steps:\n{profile(args.profile_steps)}")
 
 

@@ -33,6 +33,13 @@ ids register the same count as ``max_episode_steps``: ``n_steps - 1`` steps).  A
 next frame.  ``reset(seed=...)`` takes a Python or numpy integer in [0, 2**63); ``reset`` takes no options
 (``options`` must be None or empty: anything else raises ``ValueError`` rather than being ignored).
 
+Prefetch.  ``prefetch=True`` simulates the next frame on a background thread as soon as a step (or ``reset``)
+returns, while the caller works on the frame it was given; ``step`` then only scores the action and waits for that
+frame.  The frames, gyro samples and scores are the same, bit for bit, as without it (the next frame never depends
+on the action).  It pays where the caller's own work between steps leaves a core free: an async vector env's
+workers (whose main thread only waits for the next action) or a pipeline that releases the GIL.  Nothing else may
+use ``env.sensor`` while a frame is being prefetched.
+
 Bounds.  Every box is finite so that ``observation_space.sample()`` works: times lie in ``[0, T]`` with ``T`` the
 episode's last mid-exposure time plus one frame period (``time_horizon_s``; an env stepped past truncation leaves
 it), gyro rates in ``[-GYRO_RATE_BOUND, GYRO_RATE_BOUND]`` rad/s (3600 deg/s; a bound on the space, the gyro model
@@ -66,6 +73,7 @@ from __future__ import annotations
 
 import math
 import os
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import gymnasium as gym
@@ -91,7 +99,10 @@ class StarSensorEnv(gym.Env):
         scenario: str | dict = "paper_000",
         overrides: dict[str, Any] | None = None,
         render_mode: str | None = None,
+        prefetch: bool = False,
     ):
+        if not isinstance(prefetch, bool):
+            raise ValueError(f"prefetch must be True or False, got {prefetch!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         if not isinstance(scenario, str | os.PathLike | dict):
@@ -138,6 +149,9 @@ class StarSensorEnv(gym.Env):
         self._frame: Frame | None = None
         self._steps = 0
         self._lost_steps = 0
+        self.prefetch = prefetch
+        self._prefetcher = self._new_prefetcher()
+        self._next: Future | Frame | None = None  # the next frame, being prefetched or ready
 
     @property
     def time_horizon_s(self) -> float:
@@ -177,10 +191,12 @@ class StarSensorEnv(gym.Env):
         if seed is None and self._np_random is None:
             seed = self.scenario.seed
         super().reset(seed=seed)
+        self._discard_next()
         self.sensor.reset(np.random.SeedSequence(int(self.np_random.integers(0, 2**63 - 1))))
         self._frame = self.sensor.next_frame()
         self._steps = 0
         self._lost_steps = 0
+        self._start_next()
         return self._observation(self._frame), {"truth": self._truth(self._frame)}
 
     def step(self, action):
@@ -203,9 +219,52 @@ class StarSensorEnv(gym.Env):
         self._steps += 1
         terminated = self._lost_steps >= self.scenario.lost_after_steps
         truncated = self._steps >= self.scenario.n_steps - 1
-        self._frame = self.sensor.next_frame()
+        self._frame = self._take_next()
+        if not truncated:
+            self._start_next()
         info = {"truth": self._truth(self._frame), "scores": scores}
         return self._observation(self._frame), float(reward), terminated, truncated, info
+
+    def close(self):
+        """Stop the prefetch thread, if any (from here on each frame is simulated in ``step``)."""
+        self._discard_next()
+        if self._prefetcher is not None:
+            self._prefetcher.shutdown()
+            self._prefetcher = None
+        super().close()
+
+    def __getstate__(self) -> dict:
+        """A prefetched frame travels as the finished frame; the thread is made anew on unpickling."""
+        state = self.__dict__.copy()
+        if isinstance(self._next, Future):
+            state["_next"] = self._next.result()
+        state["_prefetcher"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._prefetcher = self._new_prefetcher()
+
+    def _new_prefetcher(self) -> ThreadPoolExecutor | None:
+        return ThreadPoolExecutor(1, thread_name_prefix="starenv-prefetch") if self.prefetch else None
+
+    def _start_next(self) -> None:
+        """With prefetch, start simulating the next frame."""
+        if self._prefetcher is not None:
+            self._next = self._prefetcher.submit(self.sensor.next_frame)
+
+    def _take_next(self) -> Frame:
+        """The next frame: the prefetched one (its exception re-raised here), else simulated now."""
+        pending, self._next = self._next, None
+        if pending is None:
+            return self.sensor.next_frame()
+        return pending.result() if isinstance(pending, Future) else pending
+
+    def _discard_next(self) -> None:
+        """Wait for a prefetched frame and drop it (the sensor is about to be reset or closed)."""
+        pending, self._next = self._next, None
+        if isinstance(pending, Future):
+            pending.exception()  # waits; an error there concerns a frame nobody will see
 
     def render(self):
         """``render_mode="rgb_array"``: uint8 (H, W, 3) mosaic of the last frame's heads (a display stretch, not

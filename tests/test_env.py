@@ -121,6 +121,43 @@ def test_vector_envs_sync_and_async_agree_bit_for_bit():
     assert np.array_equal(results["sync"][-2][1], single[-1][0]["frames"])
 
 
+def test_prefetch_gives_the_same_episode_bit_for_bit():
+    # The next frame is simulated on a thread while the caller works: nothing may change, across resets too.
+    plain, ahead = small_env(), StarSensorEnv("paper_000", SMALL, prefetch=True)
+    for seed in (7, 9):
+        a, b = rollout(plain, seed, 30), rollout(ahead, seed, 30)
+        assert same(a, b)
+    # Pickled mid-episode (a frame being prefetched), the clone continues as the original does.
+    obs, info = ahead.reset(seed=5)
+    ahead.step(truth_action(info))
+    clone = pickle.loads(pickle.dumps(ahead))
+    x, y = ahead.step(None), clone.step(None)
+    assert same(x[0], y[0]) and same(x[4]["truth"], y[4]["truth"])
+    assert same(clone.step(None)[0], ahead.step(None)[0])
+    ahead.close()
+    clone.close()
+
+
+def test_prefetch_error_reaches_the_step_that_needs_the_frame():
+    env = StarSensorEnv("paper_000", SMALL, prefetch=True)
+    real = env.sensor.next_frame
+    calls = []
+
+    def failing():
+        calls.append(1)
+        if len(calls) == 2:  # the frame prefetched after reset
+            raise RuntimeError("sensor failure in frame 1")
+        return real()
+
+    env.sensor.next_frame = failing
+    env.reset(seed=0)
+    with pytest.raises(RuntimeError, match="sensor failure in frame 1"):
+        env.step(None)
+    env.close()
+    with pytest.raises(ValueError, match="prefetch"):
+        StarSensorEnv("paper_000", SMALL, prefetch="yes")
+
+
 def test_pickled_env_continues_identically():
     env = small_env()
     obs, info = env.reset(seed=5)

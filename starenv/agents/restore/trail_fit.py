@@ -26,10 +26,10 @@ along it (the matched filter places a faint trail's centre to a fraction of its 
 reach that far beyond the trail's ends), its flux is positive with ``F / sigma_F >= min_snr`` and its mid-exposure
 position lies on the frame; the other candidates are left as observed.  The candidates are fitted side by side
 (one batch of Gauss-Newton steps for all); of two fits that land on one star (a trail found as two candidates) the
-brighter is kept.  A fit whose residual holds a second, parallel trail close enough to pull its position by more
-than twice its own sigma (a blend the candidate finder took for one trail) is left as observed too
-(:func:`_blended`): on seed 002's frames at 5 deg/s such pairs, 5-6 px apart, pulled 5 % of the fits by 1-1.6 px
-across their trails and doubled the attitude error; the detector deblends them as it does on a blurred frame.
+brighter is kept.  Each kept fit's residual is then searched for a second, parallel trail (a pair the candidate
+finder took for one trail), which is fitted and kept like a first fit (:meth:`TrailFitDeblurrer._second_stars`):
+left as observed, it would sit beside the restored star for the detector to merge with it (on seed 002's frames at
+5 deg/s such pairs, 5-6 px apart, pulled 5 % of the identified stars by 1-1.6 px and doubled the attitude error).
 
 Output.  The observed frame with each kept trail replaced by its still star: ``g - F T(c) + F S(c)``, ``S`` the
 still spot (the same model with no motion), so the residual noise stays as observed and a detector tuned to the
@@ -66,9 +66,8 @@ ERF_SATURATION = 6.0  # |a| beyond which erf(a) rounds to +-1 (from 5.93 in floa
 # exp() arguments are held above this: its underflow (and products of two underflows) take numpy's slow path, some
 # 20x slower; exp(-30) = 1e-13 of the peak, below float32's resolution of any sum
 GAUSS_FLOOR = -30.0
-BLEND_SIGMA = 5.0  # a parallel trail in a fit's residual this significant (noise sigmas) is a second star, ...
-BLEND_PULL = 2.0  # ... and the fit is dropped when that star may pull it by more than this many position sigmas
-BLEND_SCREEN = 1.0  # residuals whose excess sum of squares is below this many of its sigmas are not searched
+SECOND_SIGMA = 5.0  # a parallel trail in a fit's residual this significant (noise sigmas) is a second star
+SECOND_SCREEN = 1.0  # residuals whose excess sum of squares is below this many of its sigmas are not searched
 
 
 def _gauss(z: np.ndarray) -> np.ndarray:
@@ -364,8 +363,8 @@ class TrailFitDeblurrer:
     sigmas above the first fit are left out), ``max_box_px`` (candidates whose trail box is larger on either side
     are left as observed), ``min_trail_px`` (candidates whose trail is shorter are left as observed: a trail of a
     few pixels is a slightly elongated spot, which the detector's own centroid already handles, and the model's
-    approximate pixel integration would only add its 1 % shape error).  ``last_info``: candidates, fits kept, blends
-    left as observed, median fitted position sigma (px).
+    approximate pixel integration would only add its 1 % shape error).  ``last_info``: candidates, fits kept, of
+    them second stars found in the residuals, median fitted position sigma (px).
     """
 
     iterations = 0
@@ -386,7 +385,7 @@ class TrailFitDeblurrer:
         found = frame_streaks(image, head, step, self.psf_sigma_px, self.threshold_sigma, self.min_area_px,
                               drop_points=True)
         data, sigma, noise, centres, peaks = found.data, found.sigma, found.noise, found.centroids, found.peaks
-        self.last_info = {"candidates": int(len(centres)), "kept": 0, "blended": 0, "position_sigma_px": None}
+        self.last_info = {"candidates": int(len(centres)), "kept": 0, "second": 0, "position_sigma_px": None}
         # found.data is the float64 copy of an integer frame: the output is written on it, unless it is the
         # caller's own array.
         out = data.copy() if np.may_share_memory(data, image) else data
@@ -460,8 +459,8 @@ class TrailFitDeblurrer:
         for a in range(len(fits)):
             taken[a] = not (close[a, :a] & taken[:a]).any()
         kept = [fit for fit, keep in zip(fits, taken, strict=True) if keep]
-        blended = _blended(kept, data, sigma, noise)
-        kept = [fit for fit, blend in zip(kept, blended, strict=True) if not blend]
+        found = self._second_stars(kept, data, sigma, noise, full_scale)
+        kept += found
         changes = [None] * len(kept)  # each kept fit's F (S - T) on its pixels, the fits of one chord count at once
         for n_knots in sorted({len(k.knots) for k in kept}):
             group = [i for i, k in enumerate(kept) if len(k.knots) == n_knots]
@@ -477,9 +476,98 @@ class TrailFitDeblurrer:
             np.add.at(out, (np.concatenate([k.rows for k in kept]), np.concatenate([k.cols for k in kept])),
                       np.concatenate(changes))
         sigmas = [k.position_sigma for k in kept]
-        self.last_info.update(kept=len(sigmas), blended=int(sum(blended)),
+        self.last_info.update(kept=len(sigmas), second=len(found),
                               position_sigma_px=float(np.median(sigmas)) if sigmas else None)
         return out
+
+    def _second_stars(self, fits: list[_Fit], data: np.ndarray, sigma: float, noise: float,
+                      full_scale: float) -> list[_Fit]:
+        """Stars found in the fits' residuals and fitted: the second star of a pair the candidate finder took for one
+        trail (so only one was fitted, and the other, left as observed, would sit beside the restored star for the
+        detector to merge with it).
+
+        Each fit's residual (its pixels less its trail) is searched for a parallel trail offset across it by 2 px to
+        the fit's reach, by the matched filter of the same trail: a significance of ``SECOND_SIGMA`` noise sigmas or
+        more starts a fit there, on the fit's pixels moved by the offset with the first star's fitted light taken
+        off, free to move along the trail as a first fit is (the model's ~1 % shape error leaves no such residual
+        even on a trail of 1e7 DN: ``tests/test_trail_fit.py``).  It is
+        kept on a first fit's acceptance, and when it lands no nearer than ``SHIFT_PX`` to a kept star.  Only
+        residuals whose sum of squares exceeds the noise's by ``SECOND_SCREEN`` of its spread are searched (a second
+        trail of significance ``z`` adds about ``z^2``)."""
+        height, width = data.shape
+        reach = math.floor(PSF_REACH_SIGMA * sigma + SHIFT_PX)
+        offsets = np.arange(2.0, reach + 1.0)
+        offsets = np.concatenate([-offsets[::-1], offsets])
+        starts = []  # (fit index, offset px) of each second star to fit
+        for n_knots in sorted({len(f.knots) for f in fits}):
+            group = [i for i, f in enumerate(fits) if len(f.knots) == n_knots]
+            rows, cols, valid = _padded([fits[i].rows for i in group], [fits[i].cols for i in group])
+            x, y = cols.astype(np.float64), rows.astype(np.float64)
+            c = np.array([fits[i].centre for i in group])
+            knots = np.stack([fits[i].knots for i in group])
+            flux = np.array([fits[i].flux for i in group])
+            level = np.array([fits[i].background for i in group])
+            across = np.array([[-fits[i].along[1], fits[i].along[0]] for i in group])
+            w = valid.astype(np.float64)
+            t = trail_model(x, y, c, knots, sigma, derivatives=False)[0]
+            r = (data[rows, cols] - level[:, None] - flux[:, None] * t) * w
+            n = w.sum(1)
+            excess = ((r * r).sum(1) / noise**2 - n) / np.sqrt(2.0 * np.maximum(n, 1.0))
+            screened = np.flatnonzero(excess >= SECOND_SCREEN)
+            if len(screened) == 0:
+                continue
+            group = [group[g] for g in screened]
+            x, y, c, knots, across, w, r = (a[screened] for a in (x, y, c, knots, across, w, r))
+            z, best = np.zeros(len(group)), np.zeros(len(group))
+            for v in offsets:
+                tv = trail_model(x, y, c + v * across, knots, sigma, derivatives=False)[0] * w
+                zv = (r * tv).sum(1) / (noise * np.sqrt(np.maximum((tv * tv).sum(1), 1e-30)))
+                best = np.where(zv > z, v, best)
+                z = np.maximum(z, zv)
+            for g in np.flatnonzero(z >= SECOND_SIGMA):
+                starts.append((group[g], best[g]))
+        found = []
+        for n_knots in sorted({len(fits[i].knots) for i, _ in starts}):
+            group = [(i, v) for i, v in starts if len(fits[i].knots) == n_knots]
+            moved = []
+            for i, v in group:
+                f = fits[i]
+                shift = np.rint(v * np.array([-f.along[1], f.along[0]])).astype(np.int64)
+                on = ((f.cols + shift[0] >= 0) & (f.cols + shift[0] < width)
+                      & (f.rows + shift[1] >= 0) & (f.rows + shift[1] < height))
+                r, q = f.rows[on] + shift[1], f.cols[on] + shift[0]
+                below = data[r, q] < full_scale  # saturated pixels carry no flux information
+                moved.append((r[below], q[below]))
+            rows, cols, valid = _padded([m[0] for m in moved], [m[1] for m in moved])
+            x, y = cols.astype(np.float64), rows.astype(np.float64)
+            first = [fits[i] for i, _ in group]
+            light = np.stack([f.flux for f in first])[:, None] * trail_model(
+                x, y, np.array([f.centre for f in first]), np.stack([f.knots for f in first]), sigma,
+                derivatives=False)[0]
+            along = np.array([f.along for f in first])
+            start = np.array([f.centre + v * np.array([-f.along[1], f.along[0]]) for f, (_, v) in zip(first, group,
+                                                                                                     strict=True)])
+            length = np.array([float(np.linalg.norm(np.diff(f.knots, axis=0), axis=1).sum()) for f in first])
+            slack = ALONG_FRACTION * length
+            c, flux, level, cov, ok = fit_trails(np.where(valid, data[rows, cols] - light, 0.0), x.astype(np.float32),
+                                                 y.astype(np.float32), valid, start,
+                                                 np.stack([f.knots for f in first]), sigma, noise,
+                                                 outlier_sigma=self.outlier_sigma, min_snr=self.min_snr,
+                                                 max_shift_px=SHIFT_PX + slack)
+            sigma_f = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
+            shift = c - start
+            shift_along = np.einsum("ij,ij->i", shift, along)
+            shift_across = np.abs(shift[:, 1] * along[:, 0] - shift[:, 0] * along[:, 1])
+            good = ok & (flux > 0) & (flux >= self.min_snr * sigma_f)
+            good &= (shift_across <= SHIFT_PX) & (np.abs(shift_along) <= SHIFT_PX + slack)
+            good &= (c[:, 0] >= 0) & (c[:, 0] <= width - 1) & (c[:, 1] >= 0) & (c[:, 1] <= height - 1)
+            for g in np.flatnonzero(good):
+                taken = [f.centre for f in fits] + [f.centre for f in found]
+                if min(float(np.hypot(*(c[g] - p))) for p in taken) <= SHIFT_PX:
+                    continue
+                found.append(_Fit(flux[g], c[g], first[g].knots, moved[g][0], moved[g][1],
+                                  math.sqrt(max(0.5 * (cov[g, 0, 0] + cov[g, 1, 1]), 0.0)), level[g], along[g]))
+        return found
 
 
 @dataclass
@@ -495,55 +583,6 @@ class _Fit:
     position_sigma: float
     background: float
     along: np.ndarray
-
-
-def _blended(fits: list[_Fit], data: np.ndarray, sigma: float, noise: float) -> list[bool]:
-    """Whether each fit is a blend whose position another star pulls further than it can be trusted.
-
-    The fit's residual (its pixels less its trail) is searched for a parallel trail offset across it by 2 px to the
-    fit's reach: a matched-filter significance of ``BLEND_SIGMA`` noise sigmas or more is a second star (the
-    candidate finder took the pair for one).  Its least-squares flux ``F2`` at offset ``v`` pulls the single fit by
-    up to ``|v| F2 / (F + F2)`` across the trail; the fit is a blend when that exceeds ``BLEND_PULL`` of its own
-    position sigma (a long, faint trail's position is uncertain by more than a neighbour's pull: dropping it would
-    cost more than it saves; a bright trail's residual from the model's ~1 % shape error fits no offset trail well
-    enough to pull it that far).  Only residuals whose sum of squares exceeds the noise's by ``BLEND_SCREEN`` of its
-    spread are searched (a second trail of significance ``z`` adds about ``z^2``)."""
-    flags = [False] * len(fits)
-    reach = math.floor(PSF_REACH_SIGMA * sigma + SHIFT_PX)
-    offsets = np.arange(2.0, reach + 1.0)
-    offsets = np.concatenate([-offsets[::-1], offsets])
-    for n_knots in sorted({len(f.knots) for f in fits}):
-        group = [i for i, f in enumerate(fits) if len(f.knots) == n_knots]
-        rows, cols, valid = _padded([fits[i].rows for i in group], [fits[i].cols for i in group])
-        x, y = cols.astype(np.float64), rows.astype(np.float64)
-        c = np.array([fits[i].centre for i in group])
-        knots = np.stack([fits[i].knots for i in group])
-        flux = np.array([fits[i].flux for i in group])
-        level = np.array([fits[i].background for i in group])
-        across = np.array([[-fits[i].along[1], fits[i].along[0]] for i in group])
-        w = valid.astype(np.float64)
-        t = trail_model(x, y, c, knots, sigma, derivatives=False)[0]
-        r = (data[rows, cols] - level[:, None] - flux[:, None] * t) * w
-        n = w.sum(1)
-        screened = np.flatnonzero(((r * r).sum(1) / noise**2 - n) / np.sqrt(2.0 * np.maximum(n, 1.0)) >= BLEND_SCREEN)
-        if len(screened) == 0:
-            continue
-        group = [group[g] for g in screened]
-        x, y, c, knots, flux, across, w, r = (a[screened] for a in (x, y, c, knots, flux, across, w, r))
-        z, pull = np.zeros(len(group)), np.zeros(len(group))
-        for v in offsets:
-            tv = trail_model(x, y, c + v * across, knots, sigma, derivatives=False)[0] * w
-            power = np.maximum((tv * tv).sum(1), 1e-30)
-            zv = (r * tv).sum(1) / (noise * np.sqrt(power))
-            flux_v = np.maximum((r * tv).sum(1) / power, 0.0)
-            better = zv > z
-            z = np.where(better, zv, z)
-            pull = np.where(better, abs(v) * flux_v / (flux + flux_v), pull)
-        position_sigma = np.array([fits[i].position_sigma for i in group])
-        second = (z >= BLEND_SIGMA) & (pull > BLEND_PULL * position_sigma)
-        for g in np.flatnonzero(second):
-            flags[group[g]] = True
-    return flags
 
 
 def _padded(rows: list[np.ndarray], cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -441,13 +441,7 @@ class TrailFitDeblurrer:
                                              valid, centres[idx], knots, sigma, noise,
                                              outlier_sigma=self.outlier_sigma, min_snr=self.min_snr,
                                              max_shift_px=SHIFT_PX + slack)
-            sigma_f = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
-            good = ok & (flux > 0) & (flux >= self.min_snr * sigma_f)
-            shift = c - centres[idx]
-            shift_along = np.einsum("ij,ij->i", shift, along)
-            shift_across = np.abs(shift[:, 1] * along[:, 0] - shift[:, 0] * along[:, 1])
-            good &= (shift_across <= SHIFT_PX) & (np.abs(shift_along) <= SHIFT_PX + slack)
-            good &= (c[:, 0] >= 0) & (c[:, 0] <= width - 1) & (c[:, 1] >= 0) & (c[:, 1] <= height - 1)
+            good = _accepted(c, flux, cov, ok, centres[idx], along, slack, data.shape, self.min_snr)
             for g in np.flatnonzero(good):
                 fits.append(_Fit(flux[g], c[g], knots[g], group[g][2], group[g][3],
                                  math.sqrt(max(0.5 * (cov[g, 0, 0] + cov[g, 1, 1]), 0.0)), level[g], along[g]))
@@ -490,10 +484,9 @@ class TrailFitDeblurrer:
         the fit's reach, by the matched filter of the same trail: a significance of ``SECOND_SIGMA`` noise sigmas or
         more starts a fit there, on the fit's pixels moved by the offset with the first star's fitted light taken
         off, free to move along the trail as a first fit is (the model's ~1 % shape error leaves no such residual
-        even on a trail of 1e7 DN: ``tests/test_trail_fit.py``).  It is
-        kept on a first fit's acceptance, and when it lands no nearer than ``SHIFT_PX`` to a kept star.  Only
-        residuals whose sum of squares exceeds the noise's by ``SECOND_SCREEN`` of its spread are searched (a second
-        trail of significance ``z`` adds about ``z^2``)."""
+        even on a trail of 1e7 DN: ``tests/test_trail_fit.py``).  It is kept on a first fit's acceptance, and when
+        it lands no nearer than ``SHIFT_PX`` to a kept star.  Only residuals whose sum of squares exceeds the noise's
+        by ``SECOND_SCREEN`` of its spread are searched (a second trail of significance ``z`` adds about ``z^2``)."""
         height, width = data.shape
         reach = math.floor(PSF_REACH_SIGMA * sigma + SHIFT_PX)
         offsets = np.arange(2.0, reach + 1.0)
@@ -554,13 +547,7 @@ class TrailFitDeblurrer:
                                                  np.stack([f.knots for f in first]), sigma, noise,
                                                  outlier_sigma=self.outlier_sigma, min_snr=self.min_snr,
                                                  max_shift_px=SHIFT_PX + slack)
-            sigma_f = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
-            shift = c - start
-            shift_along = np.einsum("ij,ij->i", shift, along)
-            shift_across = np.abs(shift[:, 1] * along[:, 0] - shift[:, 0] * along[:, 1])
-            good = ok & (flux > 0) & (flux >= self.min_snr * sigma_f)
-            good &= (shift_across <= SHIFT_PX) & (np.abs(shift_along) <= SHIFT_PX + slack)
-            good &= (c[:, 0] >= 0) & (c[:, 0] <= width - 1) & (c[:, 1] >= 0) & (c[:, 1] <= height - 1)
+            good = _accepted(c, flux, cov, ok, start, along, slack, data.shape, self.min_snr)
             for g in np.flatnonzero(good):
                 taken = [f.centre for f in fits] + [f.centre for f in found]
                 if min(float(np.hypot(*(c[g] - p))) for p in taken) <= SHIFT_PX:
@@ -583,6 +570,20 @@ class _Fit:
     position_sigma: float
     background: float
     along: np.ndarray
+
+
+def _accepted(centre: np.ndarray, flux: np.ndarray, cov: np.ndarray, converged: np.ndarray, start: np.ndarray,
+              along: np.ndarray, slack: np.ndarray, shape: tuple[int, int], min_snr: float) -> np.ndarray:
+    """Which fits (C,) are kept: converged, positive flux of at least ``min_snr`` of its sigma, within ``SHIFT_PX``
+    of the start across the trail and ``SHIFT_PX`` + ``slack`` (C,) px along it (``along``: unit vectors (C, 2)),
+    the centre on a frame of ``shape``."""
+    height, width = shape
+    shift = centre - start
+    shift_along = np.einsum("ij,ij->i", shift, along)
+    shift_across = np.abs(shift[:, 1] * along[:, 0] - shift[:, 0] * along[:, 1])
+    good = converged & (flux > 0) & (flux >= min_snr * np.sqrt(np.maximum(cov[:, 2, 2], 0.0)))
+    good &= (shift_across <= SHIFT_PX) & (np.abs(shift_along) <= SHIFT_PX + slack)
+    return good & (centre[:, 0] >= 0) & (centre[:, 0] <= width - 1) & (centre[:, 1] >= 0) & (centre[:, 1] <= height - 1)
 
 
 def _padded(rows: list[np.ndarray], cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

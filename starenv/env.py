@@ -37,8 +37,9 @@ Prefetch.  ``prefetch=True`` simulates the next frame on a background thread as 
 returns, while the caller works on the frame it was given; ``step`` then only scores the action and waits for that
 frame.  The frames, gyro samples and scores are the same, bit for bit, as without it (the next frame never depends
 on the action).  It pays where the caller's work between steps leaves a core free and releases the GIL (numpy,
-OpenCV): the built-in pipeline steps 1.2x faster on ``paper_000`` and 1.6x on ``paper_002`` on 2 cores
-(``benchmarks/env_speed.py``); in an async vector env, whose workers already keep the cores busy, it gains nothing.
+OpenCV): on 2 cores the built-in pipeline steps 1.2x faster on ``paper_000`` (``benchmarks/env_speed.py``) and
+1.6x on ``paper_002`` at 5 deg/s, where a frame takes longer to simulate; in an async vector env, whose workers
+already keep the cores busy, it gains nothing.
 Nothing else may use ``env.sensor`` while a frame is being prefetched.
 
 Bounds.  Every box is finite so that ``observation_space.sample()`` works: times lie in ``[0, T]`` with ``T`` the

@@ -429,22 +429,15 @@ class TrailFitDeblurrer:
                 if len(rc) >= 8:
                     cands.append((i, knots, rc[:, 0], rc[:, 1], along, slack))
         cands.sort(key=lambda cd: cd[0])
-        fits = []  # (flux, index, centre, knots, rows, cols, position sigma) of the fits kept
+        fits = []  # the fits kept
         for n_knots in sorted({len(cd[1]) for cd in cands}):  # one batch per chord count
             group = [cd for cd in cands if len(cd[1]) == n_knots]
             rows, cols, valid = _padded([cd[2] for cd in group], [cd[3] for cd in group])
             idx = np.array([cd[0] for cd in group])
-            knots = np.stack([cd[1] for cd in group])
-            along = np.stack([cd[4] for cd in group])
-            slack = np.array([cd[5] for cd in group])
-            c, flux, level, cov, ok = fit_trails(data[rows, cols], cols.astype(np.float32), rows.astype(np.float32),
-                                             valid, centres[idx], knots, sigma, noise,
-                                             outlier_sigma=self.outlier_sigma, min_snr=self.min_snr,
-                                             max_shift_px=SHIFT_PX + slack)
-            good = _accepted(c, flux, cov, ok, centres[idx], along, slack, data.shape, self.min_snr)
-            for g in np.flatnonzero(good):
-                fits.append(_Fit(flux[g], c[g], knots[g], group[g][2], group[g][3],
-                                 math.sqrt(max(0.5 * (cov[g, 0, 0] + cov[g, 1, 1]), 0.0)), level[g], along[g]))
+            fitted = self._fit_batch(data[rows, cols], rows, cols, valid, [(cd[2], cd[3]) for cd in group],
+                                     centres[idx], np.stack([cd[1] for cd in group]), np.stack([cd[4] for cd in group]),
+                                     np.array([cd[5] for cd in group]), data.shape, sigma, noise)
+            fits += [f for f in fitted if f is not None]
         # Brightest first; a fit that lands on a brighter one's star (a trail found twice) is dropped.
         fits.sort(key=lambda f: -f.flux)
         at = np.array([f.centre for f in fits]).reshape(-1, 2)
@@ -473,6 +466,21 @@ class TrailFitDeblurrer:
         self.last_info.update(kept=len(sigmas), second=len(found),
                               position_sigma_px=float(np.median(sigmas)) if sigmas else None)
         return out
+
+    def _fit_batch(self, values: np.ndarray, rows: np.ndarray, cols: np.ndarray, valid: np.ndarray,
+                   pixels: list[tuple[np.ndarray, np.ndarray]], starts: np.ndarray, knots: np.ndarray,
+                   along: np.ndarray, slack: np.ndarray, shape: tuple[int, int], sigma: float,
+                   noise: float) -> list[_Fit | None]:
+        """Fits of one batch (one chord count) side by side: pixel ``values`` (C, n) DN at the padded ``rows``,
+        ``cols`` of which the ``valid`` ones count, from ``starts`` (C, 2) px along ``knots``; each accepted one
+        (:func:`_accepted`, ``along`` and ``slack`` per fit) as a :class:`_Fit` on its own ``pixels`` (rows, cols),
+        None for the others."""
+        c, flux, level, cov, ok = fit_trails(values, cols.astype(np.float32), rows.astype(np.float32), valid, starts,
+                                             knots, sigma, noise, outlier_sigma=self.outlier_sigma,
+                                             min_snr=self.min_snr, max_shift_px=SHIFT_PX + slack)
+        good = _accepted(c, flux, cov, ok, starts, along, slack, shape, self.min_snr)
+        return [_Fit(flux[g], c[g], knots[g], *pixels[g], math.sqrt(max(0.5 * (cov[g, 0, 0] + cov[g, 1, 1]), 0.0)),
+                     level[g], along[g]) if good[g] else None for g in range(len(c))]
 
     def _second_stars(self, fits: list[_Fit], data: np.ndarray, sigma: float, noise: float,
                       full_scale: float) -> list[_Fit]:
@@ -532,28 +540,21 @@ class TrailFitDeblurrer:
                 below = data[r, q] < full_scale  # saturated pixels carry no flux information
                 moved.append((r[below], q[below]))
             rows, cols, valid = _padded([m[0] for m in moved], [m[1] for m in moved])
-            x, y = cols.astype(np.float64), rows.astype(np.float64)
             first = [fits[i] for i, _ in group]
+            knots = np.stack([f.knots for f in first])
             light = np.stack([f.flux for f in first])[:, None] * trail_model(
-                x, y, np.array([f.centre for f in first]), np.stack([f.knots for f in first]), sigma,
+                cols.astype(np.float64), rows.astype(np.float64), np.array([f.centre for f in first]), knots, sigma,
                 derivatives=False)[0]
             along = np.array([f.along for f in first])
             start = np.array([f.centre + v * np.array([-f.along[1], f.along[0]]) for f, (_, v) in zip(first, group,
                                                                                                      strict=True)])
-            length = np.array([float(np.linalg.norm(np.diff(f.knots, axis=0), axis=1).sum()) for f in first])
-            slack = ALONG_FRACTION * length
-            c, flux, level, cov, ok = fit_trails(np.where(valid, data[rows, cols] - light, 0.0), x.astype(np.float32),
-                                                 y.astype(np.float32), valid, start,
-                                                 np.stack([f.knots for f in first]), sigma, noise,
-                                                 outlier_sigma=self.outlier_sigma, min_snr=self.min_snr,
-                                                 max_shift_px=SHIFT_PX + slack)
-            good = _accepted(c, flux, cov, ok, start, along, slack, data.shape, self.min_snr)
-            for g in np.flatnonzero(good):
+            slack = ALONG_FRACTION * np.linalg.norm(np.diff(knots, axis=1), axis=2).sum(axis=1)
+            fitted = self._fit_batch(np.where(valid, data[rows, cols] - light, 0.0), rows, cols, valid, moved, start,
+                                     knots, along, slack, data.shape, sigma, noise)
+            for fit in fitted:
                 taken = [f.centre for f in fits] + [f.centre for f in found]
-                if min(float(np.hypot(*(c[g] - p))) for p in taken) <= SHIFT_PX:
-                    continue
-                found.append(_Fit(flux[g], c[g], first[g].knots, moved[g][0], moved[g][1],
-                                  math.sqrt(max(0.5 * (cov[g, 0, 0] + cov[g, 1, 1]), 0.0)), level[g], along[g]))
+                if fit is not None and min(float(np.hypot(*(fit.centre - p))) for p in taken) > SHIFT_PX:
+                    found.append(fit)
         return found
 
 

@@ -1,9 +1,12 @@
 """Environment speed: steps/s of the 512 x 512 seed-000 scenario with a do-nothing action on one core, and the
 speed-up of an async vector env with 2 workers over that single env (measured in the same run), observations through
 shared memory (Gymnasium's default), pickled, and through shared memory with each worker prefetching its next frame
-(``prefetch=True``: simulated while the main process handles the last step); one env driven by the scenario's own
-pipeline, with and without prefetch (the next frame simulated on a thread while the pipeline works); then a cProfile
-of single-env steps.
+(``prefetch=True``: simulated while the main process handles the last step); starenv's ``SharedMemoryVectorEnv``
+(actions, observations, rewards and flags in shared memory) with its defaults (infos sent, observations copied) and
+lean (no infos, observations as views of the shared memory); "bare workers", the floor of any process-based vector
+env's overhead (a byte to step, the frames written straight into shared memory, a byte back and nothing else); one
+env driven by the scenario's own pipeline, with and without prefetch (the next frame simulated on a thread while the
+pipeline works); then a cProfile of single-env steps.
 
 Goals: >= 300 steps/s; >= 1.8x with 2 workers.  The machines are shared: each figure is the median of ``--repeats``
 rounds, every round timing all variants back to back, and the floor of a step (one float32 standard normal per pixel
@@ -72,6 +75,79 @@ def vector(steps: int, workers: int, shared_memory: bool, prefetch: bool = False
     after = os.times()
     worker_cpu = (after.children_user + after.children_system) - (before.children_user + before.children_system)
     return rate, main_cpu / max(steps * workers, 1), worker_cpu / max(steps * workers, 1)
+
+
+def lean_vector(steps: int, workers: int, infos: bool, copy: bool) -> float:
+    """Steps/s (all workers) of starenv's ``SharedMemoryVectorEnv`` (actions, observations, rewards and flags in
+    shared memory)."""
+    from starenv.vector import SharedMemoryVectorEnv
+
+    envs = SharedMemoryVectorEnv.from_id(ENV_ID, workers, workers=workers, infos=infos, copy=copy)
+    template = gym.make(ENV_ID).unwrapped.null_action()
+    action = {k: np.stack([v] * workers) for k, v in template.items()}
+    envs.reset(seed=0)
+    envs.step(action)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        envs.step(action)
+    rate = steps * workers / (time.perf_counter() - t0)
+    envs.close()
+    return rate
+
+
+def _bare_worker(index: int, envs: int, shm_name: str, pipe) -> None:
+    """Step env ``index`` whenever the main process says so, write its frames into the shared block, answer a byte."""
+    from multiprocessing.shared_memory import SharedMemory
+
+    env = gym.make(ENV_ID)
+    action = env.unwrapped.null_action()
+    block = SharedMemory(name=shm_name)
+    frames = np.ndarray((envs, *env.observation_space["frames"].shape), np.uint16, buffer=block.buf)
+    env.reset(seed=index)
+    while pipe.recv():
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            env.reset()
+        frames[index] = obs["frames"]
+        pipe.send(True)
+    del frames
+    block.close()
+
+
+def bare_workers(steps: int, workers: int) -> float:
+    """Steps/s (all workers) of the least a process-based vector env can do per step: each worker steps its env on a
+    one-byte message, writes the frames into one shared-memory block and answers a byte (no action, no observation
+    or info sent, no autoreset bookkeeping in the main process)."""
+    from multiprocessing.shared_memory import SharedMemory
+
+    shape = gym.make(ENV_ID).observation_space["frames"].shape
+    block = SharedMemory(create=True, size=workers * int(np.prod(shape)) * 2)
+    context = multiprocessing.get_context("fork")
+    pipes, processes = [], []
+    for index in range(workers):
+        ours, theirs = context.Pipe()
+        process = context.Process(target=_bare_worker, args=(index, workers, block.name, theirs), daemon=True)
+        process.start()
+        pipes.append(ours)
+        processes.append(process)
+
+    def step_all() -> None:
+        for pipe in pipes:
+            pipe.send(True)
+        for pipe in pipes:
+            pipe.recv()
+
+    step_all()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step_all()
+    rate = steps * workers / (time.perf_counter() - t0)
+    for pipe, process in zip(pipes, processes, strict=True):
+        pipe.send(False)
+        process.join()
+    block.close()
+    block.unlink()
+    return rate
 
 
 def with_pipeline(steps: int, prefetch: bool) -> float:
@@ -150,6 +226,9 @@ def main() -> None:
             "single": one, "single cpu": one_cpu, "shared": shared, "main cpu": main_cpu,
             "worker cpu": worker_cpu - set_up / (2 * args.steps),
             "pickled": vector(args.steps, 2, False)[0], "prefetch": vector(args.steps, 2, True, prefetch=True)[0],
+            "bare": bare_workers(args.steps, 2),
+            "lean": lean_vector(args.steps, 2, infos=True, copy=True),
+            "lean views": lean_vector(args.steps, 2, infos=False, copy=False),
             "pipeline": with_pipeline(args.steps // 3, False),
             "pipeline prefetch": with_pipeline(args.steps // 3, True),
         })
@@ -164,10 +243,12 @@ def main() -> None:
     print(f"single env, do-nothing action:    {median['single']:8.1f} steps/s   (goal >= 300) = "
           f"{ratio['floor']:.2f} x the floor's time")
     print(f"noise floor in 2 processes at once: {ceiling:.2f} x one process (the ceiling of a 2-worker speed-up here)")
-    for key, label in (("shared", "shared memory"), ("pickled", "pickled     "), ("prefetch", "+ prefetch   ")):
-        print(f"async vector env, 2 workers, {label}: {median[key]:8.1f} steps/s = {ratio[key]:.2f} x single "
+    for key, label in (("shared", "Gymnasium async, shared memory"), ("pickled", "Gymnasium async, pickled"),
+                       ("prefetch", "Gymnasium async, + prefetch"), ("bare", "bare workers (the floor)"),
+                       ("lean", "SharedMemoryVectorEnv"), ("lean views", "SharedMemoryVectorEnv, no infos, views")):
+        print(f"vector env, 2 workers, {label:<38} {median[key]:6.1f} steps/s = {ratio[key]:.2f} x single "
               f"(goal >= 1.8; {ratio[key] / ceiling:.2f} of the ceiling)")
-    print(f"CPU time per env step: single env {median['single cpu'] * 1e3:.2f} ms; in the vector env (shared memory) "
+    print(f"CPU time per env step: single env {median['single cpu'] * 1e3:.2f} ms; in Gymnasium's async vector env "
           f"worker {median['worker cpu'] * 1e3:.2f} ms + main process {median['main cpu'] * 1e3:.2f} ms: on 2 cores "
           f"at most {cpu_bound:.2f} x single")
     print(f"single env + the scenario's pipeline: {median['pipeline']:8.1f} steps/s; with prefetch "

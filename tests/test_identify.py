@@ -358,6 +358,24 @@ def test_a_prior_far_off_falls_back_and_a_planted_chance_pairing_is_rejected(los
     assert fallback.calls == 1
 
 
+def test_when_the_vote_gives_nothing_the_priors_own_pairing_identifies_the_frame(lost_in_space, catalog, monkeypatch):
+    # Step 6 alone (the vote made to find nothing, as on a frame of trail pieces whose chance agreements spoil the
+    # core): a prior 20 arcsec (0.5 px) off pairs every true detection within the 3 px gate, and 40 false stars
+    # spread over the frame pair with none.  With step 6 removed the frame would go to the fallback.
+    monkeypatch.setattr(TrackingIdentifier, "_vote", lambda *args: None)
+    fallback = CountingIdentifier(lost_in_space["narrow"])
+    tracker = TrackingIdentifier(fallback=fallback)
+    tracker.reset([NARROW], catalog)
+    rng = np.random.default_rng(31)
+    for _ in range(5):
+        attitude = Rotation.random(random_state=rng)
+        stars, truth = scene([NARROW], catalog, attitude, rng, false_stars=40)
+        prior = Rotation.from_rotvec(rng.normal(size=3) / math.sqrt(3.0) * 20.0 / 3600.0 * DEG) * attitude
+        present, correct, wrong = tally(tracker.identify(stars, [NARROW], prior), truth)
+        assert wrong == 0 and correct >= present - 1 and present >= 5
+    assert fallback.calls == 0
+
+
 def test_false_match_probability_matches_monte_carlo_on_random_star_fields():
     # Stars: a Poisson field on a 1024^2 sensor; detections: uniform, at least the radius from the edges.  The closed
     # form P(X >= k), X ~ Binomial(n, 1 - exp(-density pi r^2)), against the fraction of fields with k or more

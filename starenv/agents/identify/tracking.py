@@ -32,12 +32,22 @@ Steps (detections of all heads pooled as body-frame unit vectors):
    catalogue stars in each head's cone, the largest of the heads'), ``g = 2`` (two agreeing pairs fix an attitude,
    and pair by construction) and ``H`` the number of agreeing candidate pairs of step 2 (the hypotheses the search
    could have ended on), the result is accepted when ``m >= min_matches`` and ``H P(X >= m - 2) <= max_false``,
-   ``X ~ Binomial(n - 2, p)``.  Otherwise (and with no prior) the fallback labels the frame.
+   ``X ~ Binomial(n - 2, p)``.
+6. When the core gives no verified result (it can hold chance agreements: on a frame of many trail pieces, pieces
+   from the same part of parallel trails agree in their chords), the prior itself is the hypothesis: each detection
+   paired with the star predicted within ``refine_gate_px``, and those pairs verified as in step 5 with ``H = 1``
+   and ``g = 1`` (no pair is made by construction; the one counted is a margin for the prior's own error, so that
+   three detections planted on predicted stars are refused), then solved and re-paired as in step 4.  Otherwise
+   (and with no prior) the fallback labels the frame.
+
+Steps 5 and 6 each test at half of ``max_false`` (``2 H`` and 2 hypotheses), so that the frame's two attempts
+together accept a wrong attitude with a probability below ``max_false``.
 
 What that allows.  Seed 002's 12 deg head (42 arcsec/px) with the catalogue to Hp 6.5 has ~1.1e3 stars/sr on
 average (~44 in a field), so a 3 px radius gives ``p ~ 7e-4``: a frame of 30 detections with agreeing candidate
-pairs ``H ~ 500`` is accepted from ``m = 5`` pairs (bound 8e-6), never with 4 (3e-3); a frame of 4 detections needs
-all 4 and ``H <= 20``.  ``max_false = 1e-5`` bounds the chance of accepting a wrong attitude per frame by 1e-5.
+pairs ``H ~ 500`` is accepted by step 5 from ``m = 6`` pairs (bound ``2 H P`` 4.9e-6), not with 5 (1.1e-3); a frame
+of 4 detections needs all 4 and ``H <= 10``.  Step 6 accepts the same frame from 4 pairs under the prior (2.5e-6),
+never from 3 (3.9e-4).  ``max_false = 1e-5`` bounds the chance of accepting a wrong attitude per frame by 1e-5.
 
 A star closer than ``MERGE_PX`` pixels to a brighter one is taken as part of it (the sensor sees one star).
 """
@@ -138,6 +148,28 @@ class TrackingIdentifier:
         pix = pixel[heads]
         stars, density = self._in_view(cameras, prior, pixel)
         unit = self._unit[stars]
+        radius2 = (self.refine_gate_px * pix) ** 2
+        p = float(np.max(chance_match(density[heads], np.sqrt(radius2))))
+        # Two attempts, each verified at half of max_false: together they accept a wrong attitude with a probability
+        # below max_false.
+        voted = self._vote(body, pix, unit, prior)
+        if voted is not None:
+            pairs = self._settle(body, unit, wahba_svd(*voted[0]), radius2)
+            if pairs is not None and self._verified(n, len(pairs[0]), p, 2, 2 * voted[1]):
+                return self._ids(n, stars, pairs)
+        # 6. The prior's own pairing, verified before any solution is fitted to it, with one pair counted as given:
+        # a margin for the prior's own error, so that three detections planted on predicted stars are refused.
+        if self._verified(n, len(self._pair(body, unit, prior, radius2)[0]), p, 1, 2):
+            pairs = self._settle(body, unit, prior, radius2)
+            if pairs is not None:
+                return self._ids(n, stars, pairs)
+        return None
+
+    def _vote(self, body: np.ndarray, pix: np.ndarray, unit: np.ndarray,
+              prior: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], int] | None:
+        """Steps 1-3: the core's (body, inertial) unit vectors and the number of agreeing candidate pairs (the
+        hypotheses), or None when too few candidates agree."""
+        n = len(body)
         # 1. Candidates within the gate of the predicted stars.
         squared = 2.0 - 2.0 * (body @ prior @ unit.T)
         det, star = np.nonzero(squared <= (self.gate_px * pix)[:, None] ** 2)
@@ -161,24 +193,29 @@ class TrackingIdentifier:
         core = kept[support >= max(2.0, support.max() / 2.0)]
         if len(core) < self.min_matches:
             return None
-        # 4. Solve, re-pair tightly, repeat until the pairs settle.
-        radius = self.refine_gate_px * pix
-        attitude = wahba_svd(body[det[core]], unit[star[core]])
-        pairs = self._pair(body, unit, attitude, radius**2)
+        return (body[det[core]], unit[star[core]]), max(int(agree.sum()) // 2, 1)
+
+    def _settle(self, body: np.ndarray, unit: np.ndarray, attitude: np.ndarray,
+                radius2: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Step 4 from ``attitude``: pair, solve and re-pair until the pairs settle; None when fewer than
+        ``min_matches`` pair."""
+        pairs = self._pair(body, unit, attitude, radius2)
         for _ in range(_REPAIRS):
             if len(pairs[0]) < self.min_matches:
                 return None
             attitude = wahba_svd(body[pairs[0]], unit[pairs[1]])
-            repaired = self._pair(body, unit, attitude, radius**2)
+            repaired = self._pair(body, unit, attitude, radius2)
             if same_matches(repaired, pairs):
                 break
             pairs = repaired
-        # 5. Verify.
-        m = len(pairs[0])
-        p = float(np.max(chance_match(density[heads], radius)))
-        hypotheses = max(int(agree.sum()) // 2, 1)
-        if m < self.min_matches or false_match_probability(n, m, p, 2, hypotheses) > self.max_false:
-            return None
+        return pairs if len(pairs[0]) >= self.min_matches else None
+
+    def _verified(self, n: int, m: int, p: float, given: int, hypotheses: int) -> bool:
+        """Step 5: ``m`` of ``n`` detections paired, ``given`` of them by construction, is no chance pairing of any
+        of ``hypotheses`` attitudes."""
+        return m >= self.min_matches and false_match_probability(n, m, p, given, hypotheses) <= self.max_false
+
+    def _ids(self, n: int, stars: np.ndarray, pairs: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         ids = np.full(n, -1, dtype=np.int64)
         ids[pairs[0]] = self._hip[stars[pairs[1]]]
         return ids

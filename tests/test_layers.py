@@ -6,8 +6,8 @@ module of its own layer or a lower one.  Lowest first:
 2. ``config``, ``scenario`` (TOML files -> simulator models);
 3. ``datasets`` (samples drawn from the simulator for learning);
 4. ``agents`` (contracts in ``agents.base``, the agents, their training);
-5. ``env``, ``episode``, ``scoring``, ``view``, ``registration``, ``wrappers`` (the Gymnasium loop that drives
-   policies);
+5. ``env``, ``episode``, ``scoring``, ``view``, ``registration``, ``wrappers``, ``vector`` (the Gymnasium loop that
+   drives policies);
 6. ``record``, ``bench``, ``cli`` and the package's ``__init__`` (front ends).
 """
 
@@ -21,7 +21,7 @@ import starenv
 ROOT = Path(starenv.__file__).resolve().parent
 LAYERS = {
     "checks": 0, "files": 0, "parallel": 0, "sim": 1, "config": 2, "scenario": 2, "datasets": 3, "agents": 4,
-    "env": 5, "episode": 5, "scoring": 5, "view": 5, "registration": 5, "wrappers": 5,
+    "env": 5, "episode": 5, "scoring": 5, "view": 5, "registration": 5, "wrappers": 5, "vector": 5,
     "record": 6, "bench": 6, "cli": 6, "__init__": 6,
 }
 

@@ -122,3 +122,14 @@ def test_a_worker_that_dies_is_named_and_the_vector_env_still_closes():
 def test_a_worker_count_outside_one_to_num_envs_is_refused(workers):
     with pytest.raises(ValueError, match=r"workers must be an integer from 1 to num_envs \(2\)"):
         SharedMemoryVectorEnv.from_id("StarEnv/Scenario-v0", 2, workers=workers, **KWARGS)
+
+
+def test_a_spawned_worker_builds_its_envs_from_the_id_and_gives_the_same_frames():
+    # Under "spawn" nothing is inherited: the env makers and the shared blocks travel pickled to the workers.
+    envs = SharedMemoryVectorEnv.from_id("StarEnv/Scenario-v0", 2, workers=2, context="spawn", **KWARGS)
+    envs.reset(seed=5)
+    stepped, *_ = envs.step(truth_actions(envs, envs.reset(seed=5)[1]))
+    envs.close()
+    reference = StarSensorEnv("paper_000", SMALL)
+    reference.reset(seed=6)
+    assert np.array_equal(stepped["frames"][1], reference.step(reference.null_action())[0]["frames"])

@@ -328,7 +328,8 @@ def test_a_prior_far_off_falls_back_and_a_planted_chance_pairing_is_rejected(los
     # The prior is 10 deg off across the boresight, so no detection's star is within the gate (50 px).  Three faint
     # detections are planted exactly where the prior puts three catalogue stars: a pairing that agrees in every angle
     # and that a tracker counting pairs accepts.  Its false-match bound H P(X >= 1), X ~ Binomial(n - 2, p ~ 5e-4),
-    # is far above max_false: the frame goes to lost in space, which labels the true stars and not the planted ones.
+    # is far above max_false, and so is the prior's own pairing's, P(X >= 2) with X ~ Binomial(n - 1, p) (step 6):
+    # the frame goes to lost in space, which labels the true stars and not the planted ones.
     lis = lost_in_space["narrow"]
     fallback = CountingIdentifier(lis)
     tracker = TrackingIdentifier(fallback=fallback)

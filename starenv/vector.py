@@ -75,6 +75,7 @@ def _assign(views, values, name: str = "actions") -> None:
 
 
 def _copy(tree):
+    """A copy of an array or a dict / tuple of them."""
     if isinstance(tree, dict):
         return {key: _copy(value) for key, value in tree.items()}
     if isinstance(tree, tuple):
@@ -125,12 +126,15 @@ def _worker(env_fns: list[Callable[[], gym.Env]], first: int, shared: _Shared, p
     while True:
         try:
             command, data = pipe.recv()
-        except EOFError:  # the main process is gone
-            break
+        except EOFError:  # the main process is gone: close the envs (files their wrappers write are finished)
+            command, data = "close", None
         if command == "close":
             for env in envs:
                 env.close()
-            pipe.send(("ok", None))
+            try:
+                pipe.send(("ok", None))
+            except (BrokenPipeError, ConnectionResetError):  # nobody to tell
+                pass
             break
         infos = []
         k = 0
@@ -243,7 +247,7 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
                 self._shared.truncations.astype(bool), infos)
 
     def close_extras(self, **kwargs) -> None:
-        """Close every env (their recordings are finished) and end the workers."""
+        """Close every env (files their wrappers write, such as videos, are finished) and end the workers."""
         for pipe, process in zip(self._pipes, self._processes, strict=True):
             if process.is_alive():
                 try:

@@ -133,3 +133,37 @@ def test_a_spawned_worker_builds_its_envs_from_the_id_and_gives_the_same_frames(
     reference = StarSensorEnv("paper_000", SMALL)
     reference.reset(seed=6)
     assert np.array_equal(stepped["frames"][1], reference.step(reference.null_action())[0]["frames"])
+
+
+SCRIPT = """
+import os, sys
+import gymnasium as gym
+from starenv.env import StarSensorEnv
+from starenv.vector import SharedMemoryVectorEnv
+
+class MarksClose(gym.Wrapper):
+    def close(self):
+        with open(os.path.join(sys.argv[1], str(os.getpid())), "w") as f:
+            f.write("closed")
+        super().close()
+
+small = {"heads.0.width": 128, "heads.0.height": 128}
+envs = SharedMemoryVectorEnv([lambda: MarksClose(StarSensorEnv("paper_000", small))] * 2, workers=2, context="fork")
+envs.reset(seed=0)
+print(os.getpid(), flush=True)
+os._exit(0)  # gone without closing anything
+"""
+
+
+def test_workers_close_their_envs_when_the_main_process_dies(tmp_path):
+    import subprocess
+    import sys
+    import time
+
+    main = subprocess.run([sys.executable, "-c", SCRIPT, str(tmp_path)], capture_output=True, text=True, check=True)
+    main_pid = main.stdout.split()[-1]
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline and len([p for p in tmp_path.iterdir() if p.name != main_pid]) < 2:
+        time.sleep(0.1)
+    closed = [p for p in tmp_path.iterdir() if p.name != main_pid]  # the main process closed only its probe env
+    assert len(closed) == 2 and all(p.read_text() == "closed" for p in closed)

@@ -154,13 +154,14 @@ class TrackingIdentifier:
         # below max_false.
         voted = self._vote(body, pix, unit, prior)
         if voted is not None:
-            pairs = self._settle(body, unit, wahba_svd(*voted[0]), radius2)
+            pairs = self._settle(body, unit, self._pair(body, unit, wahba_svd(*voted[0]), radius2), radius2)
             if pairs is not None and self._verified(n, len(pairs[0]), p, 2, 2 * voted[1]):
                 return self._ids(n, stars, pairs)
         # 6. The prior's own pairing, verified before any solution is fitted to it, with one pair counted as given:
         # a margin for the prior's own error, so that three detections planted on predicted stars are refused.
-        if self._verified(n, len(self._pair(body, unit, prior, radius2)[0]), p, 1, 2):
-            pairs = self._settle(body, unit, prior, radius2)
+        pairs = self._pair(body, unit, prior, radius2)
+        if self._verified(n, len(pairs[0]), p, 1, 2):
+            pairs = self._settle(body, unit, pairs, radius2)
             if pairs is not None:
                 return self._ids(n, stars, pairs)
         return None
@@ -195,11 +196,10 @@ class TrackingIdentifier:
             return None
         return (body[det[core]], unit[star[core]]), max(int(agree.sum()) // 2, 1)
 
-    def _settle(self, body: np.ndarray, unit: np.ndarray, attitude: np.ndarray,
+    def _settle(self, body: np.ndarray, unit: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
                 radius2: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Step 4 from ``attitude``: pair, solve and re-pair until the pairs settle; None when fewer than
+        """Step 4 from a first pairing: solve and re-pair until the pairs settle; None when fewer than
         ``min_matches`` pair."""
-        pairs = self._pair(body, unit, attitude, radius2)
         for _ in range(_REPAIRS):
             if len(pairs[0]) < self.min_matches:
                 return None

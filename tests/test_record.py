@@ -354,16 +354,21 @@ def test_two_seeded_runs_give_identical_recordings(tmp_path):
 
 @needs_rerun_cli
 def test_two_reviews_of_a_recording_hold_the_same_data(run, tmp_path):
-    """Rerun stamps chunk and row ids from the clock and gives the blueprint a random id, so the .rrd bytes differ;
-    the recording id and the data (entities, timelines, rows) are identical, as ``rerun rrd compare`` confirms."""
+    """Rerun stamps chunk and row ids from the clock, gives the blueprint a random id and flushes its chunks from a
+    background thread on a wall-clock tick, so the .rrd bytes and the order of chunks differ; the recording id and the
+    data (entities, timelines, rows) are identical, as ``rerun rrd compare --unordered`` confirms -- and the same
+    comparison tells a recording of the same run without a pipeline apart."""
     import rerun as rr
 
     a = mcap_to_rrd(run[0] / "run.mcap", tmp_path / "a.rrd")
     b = mcap_to_rrd(run[0] / "run.mcap", tmp_path / "b.rrd")
     ids = {rr.chunk.RrdReader(p).recordings()[0].recording_id for p in (a, b)}
     assert len(ids) == 1
-    out = rerun_cli("rrd", "compare", a, b)
+    out = rerun_cli("rrd", "compare", "--unordered", a, b)
     assert out.returncode == 0, out.stdout + out.stderr
+    record(tmp_path / "bare.mcap", pipeline=False)
+    bare = mcap_to_rrd(tmp_path / "bare.mcap", tmp_path / "bare.rrd")
+    assert rerun_cli("rrd", "compare", "--unordered", a, bare).returncode != 0
 
 
 def test_killed_run_leaves_a_readable_partial_file_and_the_old_recording_intact(run, tmp_path):

@@ -377,6 +377,25 @@ def test_when_the_vote_gives_nothing_the_priors_own_pairing_identifies_the_frame
     assert fallback.calls == 0
 
 
+def test_the_priors_own_pairing_is_verified_again_after_settling(lost_in_space, catalog, monkeypatch):
+    # The same frames as above, with settling made to keep only three of the pairs: the prior's pairing (9-33 of
+    # 49-73 detections) verifies, the settled one (3 pairs, one counted as given: bound 2 P(X >= 2) = 2e-4 - 4e-3)
+    # must not, so every frame goes to the fallback.
+    monkeypatch.setattr(TrackingIdentifier, "_vote", lambda *args: None)
+    monkeypatch.setattr(TrackingIdentifier, "_settle", lambda self, body, unit, pairs, radius2: (pairs[0][:3],
+                                                                                                  pairs[1][:3]))
+    fallback = CountingIdentifier(lost_in_space["narrow"])
+    tracker = TrackingIdentifier(fallback=fallback)
+    tracker.reset([NARROW], catalog)
+    rng = np.random.default_rng(31)
+    for _ in range(5):
+        attitude = Rotation.random(random_state=rng)
+        stars, truth = scene([NARROW], catalog, attitude, rng, false_stars=40)
+        prior = Rotation.from_rotvec(rng.normal(size=3) / math.sqrt(3.0) * 20.0 / 3600.0 * DEG) * attitude
+        tracker.identify(stars, [NARROW], prior)
+    assert fallback.calls == 5
+
+
 def test_false_match_probability_matches_monte_carlo_on_random_star_fields():
     # Stars: a Poisson field on a 1024^2 sensor; detections: uniform, at least the radius from the edges.  The closed
     # form P(X >= k), X ~ Binomial(n, 1 - exp(-density pi r^2)), against the fraction of fields with k or more

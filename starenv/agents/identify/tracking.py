@@ -37,8 +37,9 @@ Steps (detections of all heads pooled as body-frame unit vectors):
    from the same part of parallel trails agree in their chords), the prior itself is the hypothesis: each detection
    paired with the star predicted within ``refine_gate_px``, and those pairs verified as in step 5 with ``H = 1``
    and ``g = 1`` (no pair is made by construction; the one counted is a margin for the prior's own error, so that
-   three detections planted on predicted stars are refused), then solved and re-paired as in step 4.  Otherwise
-   (and with no prior) the fallback labels the frame.
+   three detections planted on predicted stars are refused), then solved and re-paired as in step 4, and the
+   settled pairs verified again the same way (settling may drop pairs).  Otherwise (and with no prior) the fallback
+   labels the frame.
 
 Steps 5 and 6 each test at half of ``max_false`` (``2 H`` and 2 hypotheses), so that the frame's two attempts
 together accept a wrong attitude with a probability below ``max_false``.
@@ -159,10 +160,11 @@ class TrackingIdentifier:
                 return self._ids(n, stars, pairs)
         # 6. The prior's own pairing, verified before any solution is fitted to it, with one pair counted as given:
         # a margin for the prior's own error, so that three detections planted on predicted stars are refused.
+        # The settled pairs are tested again: settling may drop pairs, and the bound stated is for what is returned.
         pairs = self._pair(body, unit, prior, radius2)
         if self._verified(n, len(pairs[0]), p, 1, 2):
             pairs = self._settle(body, unit, pairs, radius2)
-            if pairs is not None:
+            if pairs is not None and self._verified(n, len(pairs[0]), p, 1, 2):
                 return self._ids(n, stars, pairs)
         return None
 

@@ -12,7 +12,8 @@ against the global noise at 5 sigma of the filtered noise (faster).  Its positio
 (``x``, ``y``).  Both are scored like the env scores a step (one-to-one matching within
 3 px of the true intensity-weighted trail centroids): recall of the detectable stars whose trail lies 4 px inside the
 frame (CentroidDetector leaves out stars cut by the border by design) and of all detectable stars, precision of the
-detections, mean centroid error of each detector's matched stars and of the stars both matched.
+detections, mean centroid error of each detector's matched stars and of the stars every detector matched ("common"),
+and, for CentroidDetector against each SEP set-up, the mean error of each on the stars the two both matched.
 
 "linked streaks" is CentroidDetector with ``link_streaks=True`` (the pieces of faint trails that noise broke joined
 into one star).
@@ -80,13 +81,15 @@ def sep_detector(sigma_px: float, matched: bool):
     return detect
 
 
-def scores(xys: dict[str, list[np.ndarray]], truths: list) -> dict[str, tuple[float, ...]]:
+def scores(xys: dict[str, list[np.ndarray]], truths: list) -> tuple[dict[str, tuple[float, ...]], dict]:
     """Per detector, pooled over frames: recall of the detectable stars whose trail (both ends and centroid) lies
     at least EDGE_PX inside the frame, recall of all detectable stars, precision, mean centroid error (px) of its
-    matched stars and of the stars every detector matched."""
+    matched stars and of the stars every detector matched.  Second, per pair of detectors (first name, second
+    name): the number of stars both matched and the mean centroid error of each on them."""
     counts = {name: np.zeros(4, int) for name in xys}  # inner found, all found, matched detections, detections
     errors = {name: [] for name in xys}
     common_errors = {name: [] for name in xys}
+    pairs = {(a, b): ([], []) for a in xys for b in xys if a < b}
     n_inner = n_all = 0
     for k, truth in enumerate(truths):
         ends = np.stack([truth.xy_start, truth.xy_end, truth.xy_centroid])
@@ -101,11 +104,17 @@ def scores(xys: dict[str, list[np.ndarray]], truths: list) -> dict[str, tuple[fl
         common = set.intersection(*(set(e) for e in error.values()))
         for name in xys:
             common_errors[name].extend(error[name][i] for i in common)
-    return {
+        for (a, b), (on_a, on_b) in pairs.items():
+            both = set(error[a]) & set(error[b])
+            on_a.extend(error[a][i] for i in both)
+            on_b.extend(error[b][i] for i in both)
+    per_detector = {
         name: (c[0] / n_inner, c[1] / n_all, c[2] / max(c[3], 1), float(np.concatenate(errors[name]).mean()),
                float(np.mean(common_errors[name])))
         for name, c in counts.items()
     }
+    return per_detector, {key: (len(on_a), float(np.mean(on_a)), float(np.mean(on_b)))
+                          for key, (on_a, on_b) in pairs.items()}
 
 
 def median_times(fns: list, images: list[np.ndarray], repeats: int) -> list[float]:
@@ -144,13 +153,17 @@ def main() -> None:
         fns = {"CentroidDetector": our_detect, "SEP matched": sep_detector(head.psf_sigma_px, True),
                "SEP default": sep_detector(head.psf_sigma_px, False), "linked streaks": linked_detect}
         times = median_times(list(fns.values()), images, args.repeats)
-        found = scores({name: [fn(im) for im in images] for name, fn in fns.items()}, truths)
+        found, pairwise = scores({name: [fn(im) for im in images] for name, fn in fns.items()}, truths)
         for name, t in zip(fns, times, strict=True):
             recall, recall_all, precision, error, common = found[name]
             print(f"{rate:6.1f}/s {name:>17} {t * 1e3:9.2f} {recall:7.3f} {recall_all:6.3f} {precision:9.3f} "
                   f"{error:11.3f} {common:8.3f}")
         for k, name in ((0, "ratio to SEP"), (3, "linked / SEP")):
             print(f"{'':8} {name:>17} {times[k] / times[1]:9.2f} (matched) {times[k] / times[2]:.2f} (default)")
+        for sep in ("SEP matched", "SEP default"):
+            n, ours_px, sep_px = pairwise[("CentroidDetector", sep)]
+            print(f"{'':8} {'on stars both find':>17}: CentroidDetector {ours_px:.3f} px, {sep} {sep_px:.3f} px "
+                  f"({n} stars)")
         if args.profile:
             profile = cProfile.Profile()
             profile.enable()

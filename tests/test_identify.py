@@ -359,41 +359,41 @@ def test_a_prior_far_off_falls_back_and_a_planted_chance_pairing_is_rejected(los
     assert fallback.calls == 1
 
 
-def test_when_the_vote_gives_nothing_the_priors_own_pairing_identifies_the_frame(lost_in_space, catalog, monkeypatch):
-    # Step 6 alone (the vote made to find nothing, as on a frame of trail pieces whose chance agreements spoil the
-    # core): a prior 20 arcsec (0.5 px) off pairs every true detection within the 3 px gate, and 40 false stars
-    # spread over the frame pair with none.  With step 6 removed the frame would go to the fallback.
+def track_step_6(lost_in_space, catalog, monkeypatch) -> tuple[list, int]:
+    """Step 6 alone (the vote made to find nothing, as on a frame of trail pieces whose chance agreements spoil the
+    core) on 5 frames of 40 false stars, each with a prior 20 arcsec (0.5 px) off: the tallies (present, correct,
+    wrong) and the number of frames handed to the fallback."""
     monkeypatch.setattr(TrackingIdentifier, "_vote", lambda *args: None)
     fallback = CountingIdentifier(lost_in_space["narrow"])
     tracker = TrackingIdentifier(fallback=fallback)
     tracker.reset([NARROW], catalog)
     rng = np.random.default_rng(31)
+    tallies = []
     for _ in range(5):
         attitude = Rotation.random(random_state=rng)
         stars, truth = scene([NARROW], catalog, attitude, rng, false_stars=40)
         prior = Rotation.from_rotvec(rng.normal(size=3) / math.sqrt(3.0) * 20.0 / 3600.0 * DEG) * attitude
-        present, correct, wrong = tally(tracker.identify(stars, [NARROW], prior), truth)
+        tallies.append(tally(tracker.identify(stars, [NARROW], prior), truth))
+    return tallies, fallback.calls
+
+
+def test_when_the_vote_gives_nothing_the_priors_own_pairing_identifies_the_frame(lost_in_space, catalog, monkeypatch):
+    # The prior pairs every true detection within the 3 px gate, and the false stars spread over the frame pair with
+    # none.  With step 6 removed every frame would go to the fallback.
+    tallies, fallbacks = track_step_6(lost_in_space, catalog, monkeypatch)
+    for present, correct, wrong in tallies:
         assert wrong == 0 and correct >= present - 1 and present >= 5
-    assert fallback.calls == 0
+    assert fallbacks == 0
 
 
 def test_the_priors_own_pairing_is_verified_again_after_settling(lost_in_space, catalog, monkeypatch):
-    # The same frames as above, with settling made to keep only three of the pairs: the prior's pairing (9-33 of
-    # 49-73 detections) verifies, the settled one (3 pairs, one counted as given: bound 2 P(X >= 2) = 2e-4 - 4e-3)
-    # must not, so every frame goes to the fallback.
-    monkeypatch.setattr(TrackingIdentifier, "_vote", lambda *args: None)
+    # The same frames with settling made to keep only three of the pairs: the prior's pairing (9-33 of 49-73
+    # detections) verifies, the settled one (3 pairs, one counted as given: bound 2 P(X >= 2) = 2e-4 - 4e-3) must not,
+    # so every frame goes to the fallback.
     monkeypatch.setattr(TrackingIdentifier, "_settle", lambda self, body, unit, pairs, radius2: (pairs[0][:3],
                                                                                                   pairs[1][:3]))
-    fallback = CountingIdentifier(lost_in_space["narrow"])
-    tracker = TrackingIdentifier(fallback=fallback)
-    tracker.reset([NARROW], catalog)
-    rng = np.random.default_rng(31)
-    for _ in range(5):
-        attitude = Rotation.random(random_state=rng)
-        stars, truth = scene([NARROW], catalog, attitude, rng, false_stars=40)
-        prior = Rotation.from_rotvec(rng.normal(size=3) / math.sqrt(3.0) * 20.0 / 3600.0 * DEG) * attitude
-        tracker.identify(stars, [NARROW], prior)
-    assert fallback.calls == 5
+    _, fallbacks = track_step_6(lost_in_space, catalog, monkeypatch)
+    assert fallbacks == 5
 
 
 def test_false_match_probability_matches_monte_carlo_on_random_star_fields():

@@ -508,7 +508,7 @@ class TrailFitDeblurrer:
             knots = np.stack([fits[i].knots for i in group])
             flux = np.array([fits[i].flux for i in group])
             level = np.array([fits[i].background for i in group])
-            across = np.array([[-fits[i].along[1], fits[i].along[0]] for i in group])
+            across = np.array([fits[i].across for i in group])
             w = valid.astype(np.float64)
             t = trail_model(x, y, c, knots, sigma, derivatives=False)[0]
             r = (data[rows, cols] - level[:, None] - flux[:, None] * t) * w
@@ -533,7 +533,7 @@ class TrailFitDeblurrer:
             moved = []
             for i, v in group:
                 f = fits[i]
-                shift = np.rint(v * np.array([-f.along[1], f.along[0]])).astype(np.int64)
+                shift = np.rint(v * f.across).astype(np.int64)
                 on = ((f.cols + shift[0] >= 0) & (f.cols + shift[0] < width)
                       & (f.rows + shift[1] >= 0) & (f.rows + shift[1] < height))
                 r, q = f.rows[on] + shift[1], f.cols[on] + shift[0]
@@ -546,8 +546,7 @@ class TrailFitDeblurrer:
                 cols.astype(np.float64), rows.astype(np.float64), np.array([f.centre for f in first]), knots, sigma,
                 derivatives=False)[0]
             along = np.array([f.along for f in first])
-            start = np.array([f.centre + v * np.array([-f.along[1], f.along[0]]) for f, (_, v) in zip(first, group,
-                                                                                                     strict=True)])
+            start = np.array([f.centre + v * f.across for f, (_, v) in zip(first, group, strict=True)])
             slack = ALONG_FRACTION * np.linalg.norm(np.diff(knots, axis=1), axis=2).sum(axis=1)
             fitted = self._fit_batch(np.where(valid, data[rows, cols] - light, 0.0), rows, cols, valid, moved, start,
                                      knots, along, slack, data.shape, sigma, noise)
@@ -571,6 +570,11 @@ class _Fit:
     position_sigma: float
     background: float
     along: np.ndarray
+
+    @property
+    def across(self) -> np.ndarray:
+        """Unit vector (2,) across the trail: ``along`` turned by +90 deg."""
+        return np.array([-self.along[1], self.along[0]])
 
 
 def _accepted(centre: np.ndarray, flux: np.ndarray, cov: np.ndarray, converged: np.ndarray, start: np.ndarray,

@@ -218,7 +218,9 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
     @classmethod
     def from_id(cls, env_id: str, num_envs: int, *, workers: int | None = None, infos: bool = True,
                 copy: bool = True, context: str | None = None, **env_kwargs) -> SharedMemoryVectorEnv:
-        """``num_envs`` copies of ``gym.make(env_id, **env_kwargs)``."""
+        """``num_envs`` copies of ``gym.make(env_id, **env_kwargs)``.  ``env_id`` is a registered id such as
+        ``"StarEnv/Paper000-v0"``; ``gym.make`` imports the module of a ``"module:Env"`` id, so do not pass ids read
+        from untrusted files."""
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         return cls([_Maker(env_id, env_kwargs)] * num_envs, workers=workers, infos=infos, copy=copy,

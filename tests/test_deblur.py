@@ -10,7 +10,7 @@ import starenv  # noqa: F401  (registers the environments)
 from starenv.agents.base import step_input
 from starenv.agents.detect import CentroidDetector
 from starenv.agents.pipeline import Pipeline
-from starenv.agents.restore.algorithms import resharpen
+from starenv.agents.restore.algorithms import resharpen, robust_background
 from starenv.agents.restore.curvature import CurvatureRLDeblurrer
 from starenv.agents.restore.frame import RichardsonLucyDeblurrer, WienerDeblurrer
 from starenv.agents.restore.iteration.deblurrer import IterationNetDeblurrer
@@ -226,3 +226,18 @@ def test_streak_patch_modes_of_the_seed_restorers_match_their_frame_modes_on_the
         assert 0 < (out != image).sum() <= info["candidates"] * info["patch_px"] ** 2 < image.size
         with pytest.raises(ValueError, match="region must be one of 'frame', 'streaks'"):
             agent_class(region="patches")
+
+
+def test_the_background_noise_of_an_integer_read_out_is_its_standard_deviation_not_its_rounded_mad():
+    # A read-out of 2.0 DN Gaussian noise rounded to whole DN has a standard deviation of sqrt(4 + 1/12) = 2.021 DN
+    # (the rounding adds 1/12 DN^2); its MAD is exactly 1 DN, read as 1.48 DN.  Stars (2 % of the pixels, 20-500 DN
+    # above) must not move either estimate.
+    rng = np.random.default_rng(5)
+    frame = np.round(100.3 + rng.normal(0.0, 2.0, (512, 512)))
+    stars = rng.random(frame.shape) < 0.02
+    frame[stars] += rng.uniform(20.0, 500.0, stars.sum())
+    level, noise = robust_background(frame.astype(np.uint16))
+    assert level == pytest.approx(100.3, abs=0.03)
+    assert noise == pytest.approx(math.sqrt(4.0 + 1.0 / 12.0), rel=0.02)
+    sample = frame[::4, ::4]
+    assert 1.4826 * np.median(np.abs(sample - np.median(sample))) == pytest.approx(1.4826)  # the rounded MAD

@@ -317,7 +317,8 @@ class FrameStreaks:
     background ``level`` and ``noise`` (DN), and the candidate streaks of
     :func:`~starenv.agents.restore.algorithms.streak_candidates` (``centroids`` and ``peaks`` (k, 2) px, peak
     ``responses`` (k,) in noise sigmas) found with the frame centre's kernel, drawn from its path ``streak_path``
-    (m, 2) px (:func:`exposure_path`)."""
+    (m, 2) px (:func:`exposure_path`), its kernel ``streak``, the still ``spot`` kernel (None: lone bright pixels
+    kept), and the finder's ``threshold_sigma`` and ``min_area_px``."""
 
     data: np.ndarray
     sigma: float
@@ -327,6 +328,25 @@ class FrameStreaks:
     peaks: np.ndarray
     responses: np.ndarray
     streak_path: np.ndarray
+    streak: np.ndarray
+    spot: np.ndarray | None
+    threshold_sigma: float
+    min_area_px: int
+
+    def search(self, data: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The candidate streaks (centroids, peaks, responses) whose peak lies in the box ``lo`` .. ``hi`` (x, y px,
+        inclusive) of ``data`` (DN), a frame of this one's shape (e.g. it with some trails taken off), found as on
+        this frame: its background, noise, kernels and thresholds.  The filter reads half a kernel beyond the box,
+        so the response in it is the whole frame's; a component reaching beyond that has its centroid from the
+        part read."""
+        half = np.array(self.streak.shape[::-1]) // 2 + 1
+        x0, y0 = np.maximum(np.asarray(lo) - half, 0)
+        x1, y1 = np.minimum(np.asarray(hi) + half, [data.shape[1] - 1, data.shape[0] - 1])
+        centroids, peaks, responses = streak_candidates(data[y0 : y1 + 1, x0 : x1 + 1], self.level, self.noise,
+                                                        self.streak, self.threshold_sigma, self.min_area_px, self.spot)
+        centroids, peaks = centroids + [x0, y0], peaks + [x0, y0]
+        inside = np.all((peaks >= lo) & (peaks <= hi), axis=1)
+        return centroids[inside], peaks[inside], responses[inside]
 
 
 def frame_streaks(image, head: int, step: StepInput, psf_sigma_option: float | None, threshold_sigma: float,
@@ -342,4 +362,5 @@ def frame_streaks(image, head: int, step: StepInput, psf_sigma_option: float | N
     streak, _ = path_kernel(path, sigma)  # as frame_kernel draws it
     spot = path_kernel(np.zeros((1, 2)), sigma)[0] if drop_points else None
     centroids, peaks, responses = streak_candidates(data, level, noise, streak, threshold_sigma, min_area_px, spot)
-    return FrameStreaks(data, sigma, level, noise, centroids, peaks, responses, path)
+    return FrameStreaks(data, sigma, level, noise, centroids, peaks, responses, path, streak, spot, threshold_sigma,
+                        min_area_px)

@@ -30,6 +30,16 @@ brighter is kept.  Each kept fit's residual is then searched for a second, paral
 finder took for one trail), which is fitted and kept like a first fit (:meth:`TrailFitDeblurrer._second_stars`):
 left as observed, it would sit beside the restored star for the detector to merge with it (on seed 002's frames at
 5 deg/s such pairs, 5-6 px apart, pulled 5 % of the identified stars by 1-1.6 px and doubled the attitude error).
+The first star of such a pair is then fitted again with the second's light taken off, and the second again without
+the first's (one step of fitting the two together).
+
+Chains.  The finder gives one candidate per connected component of the filter's response, so of several trails on
+one line that overlap end to end (paper_000 at 75 deg/s about X: HIP 26241, the four Trapezium stars and HIP 26237
+in one 100 px chain) only one is fitted.  Each fit's residual is also matched against its own trail moved a
+quarter, a half and three quarters of its length along it; where that finds a trail of ``SECOND_SIGMA``, the frame
+less every kept trail is searched again around the fit, and the new candidates fitted the same way, up to
+``MAX_ROUNDS`` rounds (the brightest of a chain first, then the next).  Left as observed, a piece of such a chain's
+trail is a detection no star explains, which the identifier may take for a catalogue star near it.
 
 Output.  The observed frame with each kept trail replaced by its still star: ``g - F T(c) + F S(c)``, ``S`` the
 still spot (the same model with no motion), so the residual noise stays as observed and a detector tuned to the
@@ -43,6 +53,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.special import erf
 
 from starenv import checks
@@ -68,6 +79,10 @@ ERF_SATURATION = 6.0  # |a| beyond which erf(a) rounds to +-1 (from 5.93 in floa
 GAUSS_FLOOR = -30.0
 SECOND_SIGMA = 5.0  # a parallel trail in a fit's residual this significant (noise sigmas) is a second star
 SECOND_SCREEN = 1.0  # residuals whose excess sum of squares is below this many of its sigmas are not searched
+MAX_ROUNDS = 4  # fits on the frame, then on it less the kept trails (a chain of overlapping trails, brightest first)
+ALONG_OFFSETS = (-0.75, -0.5, -0.25, 0.25, 0.5, 0.75)  # a fit's residual is searched this far along (trail lengths)
+SCAN_BOW_PX = 0.25  # the residual scan takes a trail as straight when it bows this little
+NEW_START_PX = 0.5  # a later round's candidate starting this near an earlier one's start is not fitted again
 
 
 def _gauss(z: np.ndarray) -> np.ndarray:
@@ -151,26 +166,15 @@ def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: 
     yr = (y - centre[:, 1, None]).astype(ftype)
     total, gx, gy = (np.zeros(x.shape, dtype=ftype) for _ in range(3))
     for k in range(n_chords):
-        d = knots[:, k + 1] - knots[:, k]
-        length = np.hypot(d[:, 0], d[:, 1])
-        still = length < 1e-6
-        safe = np.where(still, 1.0, length)
-        e = np.where(still[:, None], [1.0, 0.0], d / safe[:, None])
+        u, v, e, length, still, safe = _chord_coordinates(xr, yr, knots[:, k], knots[:, k + 1], s)
         ex, ey = e[:, 0, None].astype(ftype), e[:, 1, None].astype(ftype)
-        # along and across the chord from its start, in units of s
-        es = (e / s).astype(ftype)
-        u0 = ((knots[:, k, 0] * e[:, 0] + knots[:, k, 1] * e[:, 1]) / s).astype(ftype)[:, None]
-        v0 = ((knots[:, k, 1] * e[:, 0] - knots[:, k, 0] * e[:, 1]) / s).astype(ftype)[:, None]
-        u = xr * es[:, 0, None] + yr * es[:, 1, None] - u0
-        v = yr * es[:, 0, None] - xr * es[:, 1, None] - v0
         cross = _gauss(v)
         head = _gauss(u) if derivatives or still.any() else None
         if still.all():
             along, d_along = head, -u * head
         else:
             ln = (length / s).astype(ftype)[:, None]
-            along = (_erf(u * ftype(math.sqrt(0.5))) - _erf((u - ln) * ftype(math.sqrt(0.5)))) * (
-                (0.5 * norm / safe).astype(ftype)[:, None])
+            along = _along_profile(u, ln) * (0.5 * norm / safe).astype(ftype)[:, None]
             d_along = (head - _gauss(u - ln)) * (s / safe).astype(ftype)[:, None] if derivatives else None
             if still.any():
                 along = np.where(still[:, None], head, along)
@@ -191,6 +195,75 @@ def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: 
     return tuple(None if a is None else a[0] for a in out) if single else out
 
 
+def _chord_coordinates(xr: np.ndarray, yr: np.ndarray, start: np.ndarray, end: np.ndarray, s: float):
+    """Pixels at (xr, yr) (C, n) px from each trail's centre, in units of ``s`` px along (u) and across (v) its chord
+    from ``start`` to ``end`` (C, 2) px (relative to the centre), u from the chord's start, in the pixels' dtype;
+    with the chord's unit vector e (C, 2), length (C,) px, whether it is a point (C,) and its length or 1 there."""
+    ftype = xr.dtype.type
+    d = end - start
+    length = np.hypot(d[:, 0], d[:, 1])
+    still = length < 1e-6
+    safe = np.where(still, 1.0, length)
+    e = np.where(still[:, None], [1.0, 0.0], d / safe[:, None])
+    es = (e / s).astype(ftype)
+    u0 = ((start[:, 0] * e[:, 0] + start[:, 1] * e[:, 1]) / s).astype(ftype)[:, None]
+    v0 = ((start[:, 1] * e[:, 0] - start[:, 0] * e[:, 1]) / s).astype(ftype)[:, None]
+    u = xr * es[:, 0, None] + yr * es[:, 1, None] - u0
+    v = yr * es[:, 0, None] - xr * es[:, 1, None] - v0
+    return u, v, e, length, still, safe
+
+
+def _along_profile(u: np.ndarray, ln: np.ndarray) -> np.ndarray:
+    """``erf(u / sqrt 2) - erf((u - ln) / sqrt 2)``: a uniform line of length ``ln`` blurred by a unit Gaussian,
+    at ``u`` from its start (all in units of the blur), up to its normalisation."""
+    half = u.dtype.type(math.sqrt(0.5))
+    return _erf(u * half) - _erf((u - ln) * half)
+
+
+def matched_shifts(x: np.ndarray, y: np.ndarray, centre: np.ndarray, knots: np.ndarray, sigma: float,
+                   residual: np.ndarray, weight: np.ndarray, noise: float, across_px,
+                   along_lengths) -> tuple[np.ndarray, np.ndarray]:
+    """Significance (noise sigmas) of another trail like each fit's own in its ``residual`` (C, n) DN at its pixels
+    (x, y) (C, n), which count with ``weight`` (C, n) 0 or 1, moved by each of ``across_px`` px across the trail,
+    and by each of ``along_lengths`` trail lengths along it: arrays (len(across_px), C) and (len(along_lengths), C)
+    of ``sum(r T') / (noise |T'|)``, ``T'`` the moved :func:`trail_model` times the weights.  A trail of one chord
+    is the product of its profiles along and across it, so moved across only the cross profile is evaluated again,
+    and moved along only the along one.  A trail of several chords is taken as its end-to-end chord where no knot is
+    more than ``SCAN_BOW_PX`` from it (the statistic changes by a fraction of a percent), else evaluated whole at
+    each shift."""
+    centre = np.asarray(centre, dtype=np.float64)
+    chord = knots[:, -1] - knots[:, 0]
+    length = np.hypot(chord[:, 0], chord[:, 1])
+    e = chord / np.maximum(length, 1e-9)[:, None]
+    across = np.stack([-e[:, 1], e[:, 0]], axis=1)
+
+    def significance(t):
+        t = t * weight
+        return (residual * t).sum(1) / (noise * np.sqrt(np.maximum((t * t).sum(1), 1e-30)))
+
+    knot_off = knots - knots[:, :1]
+    bow = np.abs(knot_off[..., 1] * e[:, None, 0] - knot_off[..., 0] * e[:, None, 1]).max(axis=1)
+    if np.any(bow > SCAN_BOW_PX):
+        def moved(shift):
+            return significance(trail_model(x, y, centre + shift, knots, sigma, derivatives=False)[0])
+        return (np.array([moved(v * across) for v in across_px]).reshape(-1, len(centre)),
+                np.array([moved(f * length[:, None] * e) for f in along_lengths]).reshape(-1, len(centre)))
+    s = math.sqrt(sigma**2 + 1.0 / 12.0)
+    xr = (x - centre[:, 0, None]).astype(np.float32)
+    yr = (y - centre[:, 1, None]).astype(np.float32)
+    u, v, _, chord_length, still, _ = _chord_coordinates(xr, yr, knots[:, 0], knots[:, -1], s)
+    ln = (chord_length / s).astype(np.float32)[:, None]
+
+    def along_at(shift):  # shift (C,) px along the chord
+        w = u - (shift / s).astype(np.float32)[:, None]
+        return np.where(still[:, None], _gauss(w), _along_profile(w, ln))
+
+    head, cross = along_at(np.zeros(len(centre))), _gauss(v)
+    moved_across = [significance(head * _gauss(v - np.float32(a / s))) for a in across_px]
+    moved_along = [significance(along_at(f * chord_length) * cross) for f in along_lengths]
+    return np.array(moved_across).reshape(-1, len(centre)), np.array(moved_along).reshape(-1, len(centre))
+
+
 def _normal_equations(t, tx, ty, flux, w, r=None):
     """Gauss-Newton's ``J^T J`` (C, 4, 4) and, given residuals ``r`` (C, n), ``J^T r`` (C, 4), float64, of the model
     ``b + F T`` in (c_x, c_y, F, b) on the pixels ``w`` (C, n): ``J = [F dT/dc_x, F dT/dc_y, T, 1]``, summed in the
@@ -205,7 +278,7 @@ def _normal_equations(t, tx, ty, flux, w, r=None):
 
 
 def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarray, starts: np.ndarray,
-               knots: np.ndarray, sigma: float, noise: float, iterations: int = 10, outlier_sigma: float = 5.0,
+               knots: np.ndarray, sigma: float, noise: float, iterations: int = 20, outlier_sigma: float = 5.0,
                min_snr: float = 0.0, max_shift_px=SHIFT_PX):
     """Least-squares fits of :func:`trail_model` plus a constant background, one per candidate, side by side: pixel
     ``values`` (C, n) DN at (x, y) (C, n) px, of which the ``valid`` ones (C, n) count, starting from ``starts``
@@ -364,7 +437,7 @@ class TrailFitDeblurrer:
     are left as observed), ``min_trail_px`` (candidates whose trail is shorter are left as observed: a trail of a
     few pixels is a slightly elongated spot, which the detector's own centroid already handles, and the model's
     approximate pixel integration would only add its 1 % shape error).  ``last_info``: candidates, fits kept, of
-    them second stars found in the residuals, median fitted position sigma (px).
+    them second stars found in the residuals, rounds of fitting, median fitted position sigma (px).
     """
 
     iterations = 0
@@ -384,23 +457,81 @@ class TrailFitDeblurrer:
         cam = step.cameras[head]
         found = frame_streaks(image, head, step, self.psf_sigma_px, self.threshold_sigma, self.min_area_px,
                               drop_points=True)
-        data, sigma, noise, centres, peaks = found.data, found.sigma, found.noise, found.centroids, found.peaks
-        self.last_info = {"candidates": int(len(centres)), "kept": 0, "second": 0, "position_sigma_px": None}
+        data, sigma, noise = found.data, found.sigma, found.noise
+        self.last_info = {"candidates": int(len(found.centroids)), "kept": 0, "second": 0, "rounds": 0,
+                          "position_sigma_px": None}
         # found.data is the float64 copy of an integer frame: the output is written on it, unless it is the
         # caller's own array.
         out = data.copy() if np.may_share_memory(data, image) else data
-        if len(centres) == 0:
+        if len(found.centroids) == 0:
             return out
         full_scale = _full_scale(data)
         t0, t1 = window(step)
-        paths = star_paths(cam, step.gyro, t0, t1, centres)
+        centre_length = float(np.linalg.norm(np.diff(found.streak_path, axis=0), axis=1).sum())
+        reach_px = PSF_REACH_SIGMA * sigma + SHIFT_PX
+        kept, seconds, tried = [], 0, np.zeros((0, 2))
+        lights = []  # (rows, cols, F T) of each round's kept fits on their pixels
+        values, centres, peaks = data, found.centroids, found.peaks
+        for round_ in range(MAX_ROUNDS):
+            self.last_info["rounds"] = round_ + 1
+            new, starts = self._first_fits(values, data, centres, peaks, cam, step.gyro, (t0, t1), centre_length,
+                                           sigma, noise, full_scale, [k.centre for k in kept], tried)
+            tried = np.vstack([tried, starts])
+            if not new:
+                break
+            second, busy = self._second_stars(new, values, sigma, noise, full_scale, [k.centre for k in kept])
+            kept += new + second
+            seconds += len(second)
+            lights.append(_light(new + second, sigma, still=False))
+            if round_ == MAX_ROUNDS - 1 or not busy:
+                break
+            # The next round searches the frame with the new trails taken off, where a fit's residual held more
+            # than noise (a chain of overlapping trails fitted as one candidate: the brightest first); a candidate
+            # found where one was tried before (a component the subtraction did not touch) is not fitted again.
+            values = values.copy() if values is data else values
+            rows, cols, light = lights[-1]
+            np.subtract.at(values, (rows, cols), light)
+            reach = np.array(found.streak.shape[::-1]) // 2 + 1  # the response changes this far from a changed pixel
+            centres, peaks = [], []
+            for lo, hi in _merged_boxes([(np.array([f.cols.min(), f.rows.min()]) - reach,
+                                          np.array([f.cols.max(), f.rows.max()]) + reach) for f in busy]):
+                c, p, _ = found.search(values, lo, hi)
+                centres.append(c)
+                peaks.append(p)
+            centres, peaks = np.concatenate(centres), np.concatenate(peaks)
+            # what is left within a fit's reach of a kept star is its own residue (a neighbour that close is a
+            # blend, searched for across the trail by the second-star search)
+            near = cKDTree(np.array([k.centre for k in kept])).query(peaks, distance_upper_bound=reach_px)[0]
+            centres, peaks = centres[near == np.inf], peaks[near == np.inf]
+            if len(centres) == 0:
+                break
+        if kept:  # F (S - T) of each kept fit on its pixels, added in the fits' order, one pixel after another
+            rows, cols, trail = (np.concatenate(a) for a in zip(*lights, strict=True))
+            still = _light(kept, sigma, still=True)[2]
+            np.add.at(out, (rows, cols), still - trail)
+        sigmas = [k.position_sigma for k in kept]
+        self.last_info.update(kept=len(sigmas), second=seconds,
+                              position_sigma_px=float(np.median(sigmas)) if sigmas else None)
+        return out
+
+    def _first_fits(self, values: np.ndarray, data: np.ndarray, centres: np.ndarray, peaks: np.ndarray, cam,
+                    gyro, window_s, centre_length: float, sigma: float, noise: float, full_scale: float,
+                    taken: list[np.ndarray], tried: np.ndarray) -> tuple[list[_Fit], np.ndarray]:
+        """The fits kept of candidates at ``centres`` / ``peaks`` (k, 2) px on the frame ``values`` (DN: the frame
+        ``data``, or it with trails taken off), brightest first, none within ``SHIFT_PX`` of a brighter one or of a
+        ``taken`` centre; and the starts (j, 2) px of the candidates fitted: those not starting within
+        ``NEW_START_PX`` of a start ``tried`` (j, 2) before (a component the trails taken off did not change would
+        be fitted the same way again)."""
+        paths = star_paths(cam, gyro, *window_s, centres)
         mid = paths.shape[1] // 2
+        length = np.linalg.norm(np.diff(paths, axis=1), axis=2).sum(axis=1)
         # Start at the filter's peak where the candidate's trail is about as long as the filter's (the frame
         # centre's) streak, at the component's centroid where it is longer (about the boresight the centre's streak
         # is a point and the response of an arc has a plateau).
-        length = np.linalg.norm(np.diff(paths, axis=1), axis=2).sum(axis=1)
-        centre_length = float(np.linalg.norm(np.diff(found.streak_path, axis=0), axis=1).sum())
         centres = np.where((length <= 1.25 * centre_length + 2.0)[:, None], peaks, centres)
+        if len(tried):
+            fresh = cKDTree(tried).query(centres, distance_upper_bound=NEW_START_PX)[0] == np.inf
+            paths, length, centres = paths[fresh], length[fresh], centres[fresh]
         reach = PSF_REACH_SIGMA * sigma + SHIFT_PX
         height, width = data.shape
         # The filter locates a trail's centre well across it, to a fraction of its length along it: the pixels
@@ -429,43 +560,23 @@ class TrailFitDeblurrer:
                 if len(rc) >= 8:
                     cands.append((i, knots, rc[:, 0], rc[:, 1], along, slack))
         cands.sort(key=lambda cd: cd[0])
-        fits = []  # the fits kept
+        fits = []
         for n_knots in sorted({len(cd[1]) for cd in cands}):  # one batch per chord count
             group = [cd for cd in cands if len(cd[1]) == n_knots]
             rows, cols, valid = _padded([cd[2] for cd in group], [cd[3] for cd in group])
             idx = np.array([cd[0] for cd in group])
-            fitted = self._fit_batch(data[rows, cols], rows, cols, valid, [(cd[2], cd[3]) for cd in group],
-                                     centres[idx], np.stack([cd[1] for cd in group]), np.stack([cd[4] for cd in group]),
-                                     np.array([cd[5] for cd in group]), data.shape, sigma, noise)
+            fitted = self._fit_batch(values[rows, cols], rows, cols, valid, [(cd[2], cd[3]) for cd in group],
+                                     centres[idx], np.stack([cd[1] for cd in group]),
+                                     np.stack([cd[4] for cd in group]), np.array([cd[5] for cd in group]),
+                                     data.shape, sigma, noise)
             fits += [f for f in fitted if f is not None]
-        # Brightest first; a fit that lands on a brighter one's star (a trail found twice) is dropped.
+        # Brightest first; a fit that lands on a brighter one's star or a taken one (a trail found twice) is dropped.
         fits.sort(key=lambda f: -f.flux)
-        at = np.array([f.centre for f in fits]).reshape(-1, 2)
-        close = np.hypot(*(at[:, None] - at[None]).transpose(2, 0, 1)) <= SHIFT_PX
-        taken = np.zeros(len(fits), dtype=bool)
-        for a in range(len(fits)):
-            taken[a] = not (close[a, :a] & taken[:a]).any()
-        kept = [fit for fit, keep in zip(fits, taken, strict=True) if keep]
-        found = self._second_stars(kept, data, sigma, noise, full_scale)
-        kept += found
-        changes = [None] * len(kept)  # each kept fit's F (S - T) on its pixels, the fits of one chord count at once
-        for n_knots in sorted({len(k.knots) for k in kept}):
-            group = [i for i, k in enumerate(kept) if len(k.knots) == n_knots]
-            rows, cols, _ = _padded([kept[i].rows for i in group], [kept[i].cols for i in group])
-            x, y = cols.astype(np.float64), rows.astype(np.float64)
-            c = np.array([kept[i].centre for i in group])
-            trail = trail_model(x, y, c, np.stack([kept[i].knots for i in group]), sigma, derivatives=False)[0]
-            still = trail_model(x, y, c, np.zeros((len(group), 2, 2)), sigma, derivatives=False)[0]
-            for g, i in enumerate(group):
-                size = len(kept[i].rows)
-                changes[i] = kept[i].flux * (still[g, :size] - trail[g, :size])
-        if kept:  # added in the fits' order, as one pixel after another
-            np.add.at(out, (np.concatenate([k.rows for k in kept]), np.concatenate([k.cols for k in kept])),
-                      np.concatenate(changes))
-        sigmas = [k.position_sigma for k in kept]
-        self.last_info.update(kept=len(sigmas), second=len(found),
-                              position_sigma_px=float(np.median(sigmas)) if sigmas else None)
-        return out
+        kept = []
+        for fit in fits:
+            if all(float(np.hypot(*(fit.centre - p))) > SHIFT_PX for p in taken + [k.centre for k in kept]):
+                kept.append(fit)
+        return kept, centres
 
     def _fit_batch(self, values: np.ndarray, rows: np.ndarray, cols: np.ndarray, valid: np.ndarray,
                    pixels: list[tuple[np.ndarray, np.ndarray]], starts: np.ndarray, knots: np.ndarray,
@@ -483,7 +594,7 @@ class TrailFitDeblurrer:
                      level[g], along[g]) if good[g] else None for g in range(len(c))]
 
     def _second_stars(self, fits: list[_Fit], data: np.ndarray, sigma: float, noise: float,
-                      full_scale: float) -> list[_Fit]:
+                      full_scale: float, taken: list[np.ndarray]) -> tuple[list[_Fit], list[_Fit]]:
         """Stars found in the fits' residuals and fitted: the second star of a pair the candidate finder took for one
         trail (so only one was fitted, and the other, left as observed, would sit beside the restored star for the
         detector to merge with it).
@@ -493,13 +604,16 @@ class TrailFitDeblurrer:
         more starts a fit there, on the fit's pixels moved by the offset with the first star's fitted light taken
         off, free to move along the trail as a first fit is (the model's ~1 % shape error leaves no such residual
         even on a trail of 1e7 DN: ``tests/test_trail_fit.py``).  It is kept on a first fit's acceptance, and when
-        it lands no nearer than ``SHIFT_PX`` to a kept star.  Only residuals whose sum of squares exceeds the noise's
-        by ``SECOND_SCREEN`` of its spread are searched (a second trail of significance ``z`` adds about ``z^2``)."""
+        it lands no nearer than ``SHIFT_PX`` to a kept star (``fits``, those found, or a ``taken`` centre of an
+        earlier round).  Only residuals whose sum of squares exceeds the noise's
+        by ``SECOND_SCREEN`` of its spread are searched (a second trail of significance ``z`` adds about ``z^2``);
+        those fits are returned too, as the places where another star may hide."""
         height, width = data.shape
         reach = math.floor(PSF_REACH_SIGMA * sigma + SHIFT_PX)
         offsets = np.arange(2.0, reach + 1.0)
         offsets = np.concatenate([-offsets[::-1], offsets])
         starts = []  # (fit index, offset px) of each second star to fit
+        busy = []  # the fits whose residual holds more than noise
         for n_knots in sorted({len(f.knots) for f in fits}):
             group = [i for i, f in enumerate(fits) if len(f.knots) == n_knots]
             rows, cols, valid = _padded([fits[i].rows for i in group], [fits[i].cols for i in group])
@@ -508,7 +622,6 @@ class TrailFitDeblurrer:
             knots = np.stack([fits[i].knots for i in group])
             flux = np.array([fits[i].flux for i in group])
             level = np.array([fits[i].background for i in group])
-            across = np.array([fits[i].across for i in group])
             w = valid.astype(np.float64)
             t = trail_model(x, y, c, knots, sigma, derivatives=False)[0]
             r = (data[rows, cols] - level[:, None] - flux[:, None] * t) * w
@@ -518,15 +631,15 @@ class TrailFitDeblurrer:
             if len(screened) == 0:
                 continue
             group = [group[g] for g in screened]
-            x, y, c, knots, across, w, r = (a[screened] for a in (x, y, c, knots, across, w, r))
-            z, best = np.zeros(len(group)), np.zeros(len(group))
-            for v in offsets:
-                tv = trail_model(x, y, c + v * across, knots, sigma, derivatives=False)[0] * w
-                zv = (r * tv).sum(1) / (noise * np.sqrt(np.maximum((tv * tv).sum(1), 1e-30)))
-                best = np.where(zv > z, v, best)
-                z = np.maximum(z, zv)
-            for g in np.flatnonzero(z >= SECOND_SIGMA):
+            x, y, c, knots, w, r = (a[screened] for a in (x, y, c, knots, w, r))
+            # Across: a parallel trail beside it.  Along: a trail on the same line overlapping one end (a chain the
+            # candidate finder took for one trail).
+            z_across, z_along = matched_shifts(x, y, c, knots, sigma, r, w, noise, offsets, ALONG_OFFSETS)
+            best = offsets[np.argmax(z_across, axis=0)]
+            for g in np.flatnonzero(z_across.max(axis=0) >= SECOND_SIGMA):
                 starts.append((group[g], best[g]))
+            z = z_along.max(axis=0, initial=-np.inf)
+            busy += [fits[group[g]] for g in np.flatnonzero(z >= SECOND_SIGMA)]
         found = []
         for n_knots in sorted({len(fits[i].knots) for i, _ in starts}):
             group = [(i, v) for i, v in starts if len(fits[i].knots) == n_knots]
@@ -550,11 +663,41 @@ class TrailFitDeblurrer:
             slack = ALONG_FRACTION * np.linalg.norm(np.diff(knots, axis=1), axis=2).sum(axis=1)
             fitted = self._fit_batch(np.where(valid, data[rows, cols] - light, 0.0), rows, cols, valid, moved, start,
                                      knots, along, slack, data.shape, sigma, noise)
-            for fit in fitted:
-                taken = [f.centre for f in fits] + [f.centre for f in found]
-                if fit is not None and min(float(np.hypot(*(fit.centre - p))) for p in taken) > SHIFT_PX:
-                    found.append(fit)
-        return found
+            for (i, _), fit in zip(group, fitted, strict=True):
+                near = taken + [f.centre for f in fits] + [f.centre for f, _ in found]
+                if fit is not None and min(float(np.hypot(*(fit.centre - p))) for p in near) > SHIFT_PX:
+                    found.append((fit, i))
+        if found:  # each first star again without its second's light, then each second without the new first's
+            firsts = self._refit([fits[i] for _, i in found], [f for f, _ in found], data, sigma, noise)
+            for (_, i), first in zip(found, firsts, strict=True):
+                fits[i] = first
+            found = [(f, i) for f, i in zip(self._refit([f for f, _ in found], firsts, data, sigma, noise),
+                                            [i for _, i in found], strict=True)]
+        return [f for f, _ in found], busy
+
+    def _refit(self, fits: list[_Fit], partners: list[_Fit], data: np.ndarray, sigma: float,
+               noise: float) -> list[_Fit]:
+        """Each fit made again on its own pixels of ``data`` with its partner's modelled light taken off, started
+        where it is (one of two blended trails, first fitted with the other's light in its pixels); a fit not
+        accepted again is kept as it was."""
+        out = list(fits)
+        for n_knots in sorted({len(f.knots) for f in fits}):
+            group = [j for j, f in enumerate(fits) if len(f.knots) == n_knots]
+            rows, cols, valid = _padded([fits[j].rows for j in group], [fits[j].cols for j in group])
+            mates = [partners[j] for j in group]
+            light = np.array([f.flux for f in mates])[:, None] * trail_model(
+                cols.astype(np.float64), rows.astype(np.float64), np.array([f.centre for f in mates]),
+                np.stack([f.knots for f in mates]), sigma, derivatives=False)[0]
+            knots = np.stack([fits[j].knots for j in group])
+            slack = ALONG_FRACTION * np.linalg.norm(np.diff(knots, axis=1), axis=2).sum(axis=1)
+            fitted = self._fit_batch(np.where(valid, data[rows, cols] - light, 0.0), rows, cols, valid,
+                                     [(fits[j].rows, fits[j].cols) for j in group],
+                                     np.array([fits[j].centre for j in group]), knots,
+                                     np.array([fits[j].along for j in group]), slack, data.shape, sigma, noise)
+            for j, fit in zip(group, fitted, strict=True):
+                if fit is not None:
+                    out[j] = fit
+        return out
 
 
 @dataclass
@@ -589,6 +732,40 @@ def _accepted(centre: np.ndarray, flux: np.ndarray, cov: np.ndarray, converged: 
     good = converged & (flux > 0) & (flux >= min_snr * np.sqrt(np.maximum(cov[:, 2, 2], 0.0)))
     good &= (shift_across <= SHIFT_PX) & (np.abs(shift_along) <= SHIFT_PX + slack)
     return good & (centre[:, 0] >= 0) & (centre[:, 0] <= width - 1) & (centre[:, 1] >= 0) & (centre[:, 1] <= height - 1)
+
+
+def _merged_boxes(boxes: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Boxes (lo, hi) (x, y px, inclusive) merged until none overlap: each overlapping pair replaced by the box
+    holding both."""
+    merged = []
+    for lo, hi in boxes:
+        lo, hi = lo.copy(), hi.copy()
+        joined = True
+        while joined:
+            joined = False
+            for k, (a, b) in enumerate(merged):
+                if np.all(lo <= b) and np.all(a <= hi):
+                    lo, hi = np.minimum(lo, a), np.maximum(hi, b)
+                    del merged[k]
+                    joined = True
+                    break
+        merged.append((lo, hi))
+    return merged
+
+
+def _light(fits: list[_Fit], sigma: float, still: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each fit's modelled light on its own pixels, ``F T`` (``still``: ``F S``, its star with no motion), as
+    rows, columns and DN (n,), the fits one after another in their order."""
+    light = [None] * len(fits)
+    for n_knots in sorted({len(f.knots) for f in fits}):  # one batch per chord count
+        group = [i for i, f in enumerate(fits) if len(f.knots) == n_knots]
+        rows, cols, _ = _padded([fits[i].rows for i in group], [fits[i].cols for i in group])
+        knots = np.stack([fits[i].knots for i in group])
+        model = trail_model(cols.astype(np.float64), rows.astype(np.float64), np.array([fits[i].centre for i in group]),
+                            np.zeros((len(group), 2, 2)) if still else knots, sigma, derivatives=False)[0]
+        for g, i in enumerate(group):
+            light[i] = fits[i].flux * model[g, : len(fits[i].rows)]
+    return (np.concatenate([f.rows for f in fits]), np.concatenate([f.cols for f in fits]), np.concatenate(light))
 
 
 def _padded(rows: list[np.ndarray], cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

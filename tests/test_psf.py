@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 import starenv  # noqa: F401  (registers the environments)
 from starenv.agents.restore.kernels import (
+    ExposureMotion,
     boresight_blur,
     cross_boresight_blur,
     gyro_rotation,
@@ -63,6 +64,18 @@ def test_star_paths_match_renderer_truth(scenario, head, overrides):
     np.testing.assert_array_equal(full[:, full.shape[1] // 2], p[:, 1])
     # Mean of the midpoint samples = the renderer's trail centroid (both midpoint sums of the same integral).
     np.testing.assert_allclose(full.mean(axis=1), truth["xy_centroid"], atol=1e-4)
+
+
+def test_one_exposures_motion_gives_each_set_of_stars_its_own_paths():
+    # The rotations are found once and kept: stars asked for afterwards, elsewhere, get their own paths, as from
+    # star_paths, bit for bit (the trail fit asks again for each round's candidates).
+    base, gyro, t_mid, exposure, truth = second_frame("Paper000", **{"motion.rate_dps": [30.0, -20.0, 40.0]})
+    cam = base.cameras[0]
+    window = (t_mid - 0.5 * exposure, t_mid + 0.5 * exposure)
+    motion = ExposureMotion(cam, gyro, *window)
+    first, then = truth["xy_mid"][:4], np.array([[10.0, 20.0], [500.0, 480.0], [256.0, 256.0]])
+    for xy in (first, then, np.zeros((0, 2))):
+        np.testing.assert_array_equal(motion.paths(xy), star_paths(cam, gyro, *window, xy))
 
 
 def test_star_paths_rolling_shutter_windows_match_renderer():

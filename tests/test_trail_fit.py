@@ -120,7 +120,8 @@ def fit_along_x(frame, start, offsets, noise):
     c, flux, level, cov, ok = fit_trail(frame.ravel()[near], x[near], y[near], start, knots, SIGMA, noise)
     assert ok
     return _Fit(flux, c, knots, y[near].astype(np.intp), x[near].astype(np.intp),
-                math.sqrt(0.5 * (cov[0, 0] + cov[1, 1])), level, np.array([1.0, 0.0]))
+                math.sqrt(0.5 * (cov[0, 0] + cov[1, 1])), level, np.array([1.0, 0.0]),
+                trail_model(x[near], y[near], c, knots, SIGMA, derivatives=False)[0])
 
 
 def test_the_second_star_of_a_pair_taken_for_one_trail_is_found_in_the_residual_and_fitted():

@@ -167,38 +167,62 @@ def star_paths(camera: Camera, gyro: GyroSamples, t_start: float, t_end: float, 
     ``[t_start, t_end] + r * line_time_s`` and ``xy_mid`` is taken at the middle of that window (as the renderer
     does).  ``StepInput`` does not carry the line time, so the deblurrers use the global-shutter window.
     """
-    t0 = float(checks.finite("t_start", t_start, shape=()))
-    t1 = checks.in_range("t_end", t_end, t0, unit="s")
     lt = checks.in_range("line_time_s", line_time_s, 0.0, 1e-3, unit="s")
+    xy = _positions(xy_mid)
+    shift = lt * np.clip(xy[:, 1], 0.0, camera.height - 1) if lt > 0 else np.zeros(len(xy))
+    groups = np.unique(shift)
+    if len(groups) <= 1:
+        return ExposureMotion(camera, gyro, t_start + float(shift[0]) if len(xy) else t_start,
+                              t_end + float(shift[0]) if len(xy) else t_end, n_samples).paths(xy)
+    out = None
+    for s in groups:  # one group per exposure window
+        sel = np.flatnonzero(shift == s)
+        paths = ExposureMotion(camera, gyro, t_start + s, t_end + s, n_samples).paths(xy[sel])
+        out = np.empty((len(xy),) + paths.shape[1:]) if out is None else out
+        out[sel] = paths
+    return out
+
+
+def _positions(xy_mid) -> np.ndarray:
     xy = checks.finite("xy_mid", xy_mid)
     if xy.ndim != 2 or xy.shape[1] != 2:
         raise ValueError(f"xy_mid must be an (n, 2) array of pixel positions, got shape {xy.shape}")
-    n = len(xy)
-    shift = lt * np.clip(xy[:, 1], 0.0, camera.height - 1) if lt > 0 else np.zeros(n)
-    t_mid = 0.5 * (t0 + t1)
-    v_mid = camera.unproject(xy) if n else np.zeros((0, 3))
-    mount = camera.mounting
-    if n_samples is None:
-        # Largest image speed: |w| f (1 + tan^2(alpha)) at the field corner (seed 000, Eq. 11).
-        w_max = float(np.abs(checks.finite("gyro.rate", gyro.rate)).sum(axis=1).max(initial=0.0))
-        px_per_rad = max(camera.fx, camera.fy) * (1.0 + math.tan(camera.half_diagonal) ** 2)
-        m = _odd_samples(w_max * (t1 - t0) * px_per_rad, None)
-    else:
-        m = _odd_samples(0.0, n_samples)
-    frac = (np.arange(m) + 0.5) / m
-    offsets = t0 + (t1 - t0) * frac - t_mid  # (m,) s from mid-exposure
-    if n == 0:
-        return np.zeros((0, m, 2))
-    groups = np.unique(shift)
-    out = np.empty((n, m, 2))
-    for s in groups:  # one group per exposure window (a single one with a global shutter)
-        sel = np.flatnonzero(shift == s)
-        rot = gyro_rotation(gyro, t_mid + s + offsets, t_mid + s)  # body: A(t) = D A(t_mid)
-        cam_rot = (mount * rot * mount.inv()).as_matrix()  # camera frame: c(t) = M D M^T c(t_mid)
-        v = np.einsum("kij,nj->nki", cam_rot, v_mid[sel])
-        p, _ = camera.project(v.reshape(-1, 3))
-        out[sel] = p.reshape(len(sel), m, 2)
-    return out
+    return xy
+
+
+class ExposureMotion:
+    """The camera's rotations over one exposure ``[t_start, t_end]`` (s) from the gyro, found once; :meth:`paths`
+    gives the image paths of any stars (:func:`star_paths` with a global shutter).  ``n_samples``: as there."""
+
+    def __init__(self, camera: Camera, gyro: GyroSamples, t_start: float, t_end: float,
+                 n_samples: int | None = None):
+        t0 = float(checks.finite("t_start", t_start, shape=()))
+        t1 = checks.in_range("t_end", t_end, t0, unit="s")
+        if n_samples is None:
+            # Largest image speed: |w| f (1 + tan^2(alpha)) at the field corner (seed 000, Eq. 11).
+            w_max = float(np.abs(checks.finite("gyro.rate", gyro.rate)).sum(axis=1).max(initial=0.0))
+            px_per_rad = max(camera.fx, camera.fy) * (1.0 + math.tan(camera.half_diagonal) ** 2)
+            m = _odd_samples(w_max * (t1 - t0) * px_per_rad, None)
+        else:
+            m = _odd_samples(0.0, n_samples)
+        t_mid = 0.5 * (t0 + t1)
+        offsets = t0 + (t1 - t0) * (np.arange(m) + 0.5) / m - t_mid  # (m,) s from mid-exposure
+        self.camera, self.gyro, self.t_mid, self.offsets = camera, gyro, t_mid, offsets
+        self._rotations = None
+
+    def paths(self, xy_mid) -> np.ndarray:
+        """Paths (n, m, 2) distorted px of stars at ``xy_mid`` (n, 2) px at mid-exposure."""
+        xy = _positions(xy_mid)
+        m = len(self.offsets)
+        if len(xy) == 0:
+            return np.zeros((0, m, 2))
+        if self._rotations is None:
+            mount = self.camera.mounting
+            rot = gyro_rotation(self.gyro, self.t_mid + self.offsets, self.t_mid)  # body: A(t) = D A(t_mid)
+            self._rotations = (mount * rot * mount.inv()).as_matrix()  # camera frame: c(t) = M D M^T c(t_mid)
+        v = np.einsum("kij,nj->nki", self._rotations, self.camera.unproject(xy))
+        p, _ = self.camera.project(v.reshape(-1, 3))
+        return p.reshape(len(xy), m, 2)
 
 
 def sparse_paths(camera: Camera, gyro: GyroSamples, t_start: float, t_end: float, xy_mid) -> np.ndarray:

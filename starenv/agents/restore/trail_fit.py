@@ -59,9 +59,9 @@ from scipy.special import erf
 from starenv import checks
 from starenv.agents.base import StepInput
 from starenv.agents.restore.kernels import (
+    ExposureMotion,
     frame_streaks,
     spot_sigma,
-    star_paths,
     window,
 )
 
@@ -69,7 +69,9 @@ PSF_REACH_SIGMA = 4.0  # the fit covers pixels within this many spot sigmas (+ S
 SHIFT_PX = 2.0  # how far the fit may move a candidate from its first position before its pixels run out (px)
 ALONG_FRACTION = 0.1  # along the trail it may move SHIFT_PX + this fraction of the trail's length further
 MAX_STEP_PX = 0.01  # Gauss-Newton stops when the position moves less than this (px)
-CHORD_TOLERANCE_PX = 0.05  # a trail is drawn as chords no farther than this from its gyro path
+# A trail is drawn as chords no farther than this from its gyro path (px).  On paper_002 at 10 deg/s it draws one
+# chord where 0.05 px drew two, and moves the fitted centres by 0.04 px (median), a seventh of their sigma.
+CHORD_TOLERANCE_PX = 0.1
 MAX_CHORDS = 32
 MODEL_CHUNK_PX = 1 << 14  # trail_model evaluates this many pixels at a time (float32: in cache)
 NEAR_CHUNK_PX = 1 << 16  # near_paths screens this many pixels at once (float32: in cache)
@@ -279,7 +281,7 @@ def _normal_equations(t, tx, ty, flux, w, r=None):
 
 def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarray, starts: np.ndarray,
                knots: np.ndarray, sigma: float, noise: float, iterations: int = 20, outlier_sigma: float = 5.0,
-               min_snr: float = 0.0, max_shift_px=SHIFT_PX):
+               min_snr: float = 0.0, max_shift_px=SHIFT_PX, with_model: bool = False):
     """Least-squares fits of :func:`trail_model` plus a constant background, one per candidate, side by side: pixel
     ``values`` (C, n) DN at (x, y) (C, n) px, of which the ``valid`` ones (C, n) count, starting from ``starts``
     (C, 2) px, each along its ``knots`` (C, K + 1, 2).
@@ -289,7 +291,8 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
     noise sigmas above the first fit) are dropped and those fits repeated once.  A start whose linear flux estimate
     is below half of ``min_snr`` of its own sigma is not iterated, and a fit stops (not converged) once its flux falls
     under that floor or it moves ``SHIFT_PX`` beyond ``max_shift_px`` (scalar or (C,) px) from its start: noise
-    candidates cost little time."""
+    candidates cost little time.  ``with_model``: the unit trail (C, n) float32 at each fit's last position is
+    returned too, after the rest."""
     starts = np.array(starts, dtype=np.float64).reshape(-1, 2)
     c = starts.copy()
     n = len(c)
@@ -367,7 +370,8 @@ def fit_trails(values: np.ndarray, x: np.ndarray, y: np.ndarray, valid: np.ndarr
             break
         use &= ~outliers
         converged &= ~todo
-    return c, flux, level, cov, converged & live
+    out = c, flux, level, cov, converged & live
+    return out + (t,) if with_model else out
 
 
 def fit_trail(values: np.ndarray, x: np.ndarray, y: np.ndarray, start, knots: np.ndarray, sigma: float,
@@ -466,7 +470,7 @@ class TrailFitDeblurrer:
         if len(found.centroids) == 0:
             return out
         full_scale = _full_scale(data)
-        t0, t1 = window(step)
+        motion = ExposureMotion(cam, step.gyro, *window(step))
         centre_length = float(np.linalg.norm(np.diff(found.streak_path, axis=0), axis=1).sum())
         reach_px = PSF_REACH_SIGMA * sigma + SHIFT_PX
         kept, seconds, tried = [], 0, np.zeros((0, 2))
@@ -474,8 +478,8 @@ class TrailFitDeblurrer:
         values, centres, peaks = data, found.centroids, found.peaks
         for round_ in range(MAX_ROUNDS):
             self.last_info["rounds"] = round_ + 1
-            new, starts = self._first_fits(values, data, centres, peaks, cam, step.gyro, (t0, t1), centre_length,
-                                           sigma, noise, full_scale, [k.centre for k in kept], tried)
+            new, starts = self._first_fits(values, data, centres, peaks, motion, centre_length, sigma, noise,
+                                           full_scale, [k.centre for k in kept], tried)
             tried = np.vstack([tried, starts])
             if not new:
                 break
@@ -514,15 +518,15 @@ class TrailFitDeblurrer:
                               position_sigma_px=float(np.median(sigmas)) if sigmas else None)
         return out
 
-    def _first_fits(self, values: np.ndarray, data: np.ndarray, centres: np.ndarray, peaks: np.ndarray, cam,
-                    gyro, window_s, centre_length: float, sigma: float, noise: float, full_scale: float,
+    def _first_fits(self, values: np.ndarray, data: np.ndarray, centres: np.ndarray, peaks: np.ndarray,
+                    motion: ExposureMotion, centre_length: float, sigma: float, noise: float, full_scale: float,
                     taken: list[np.ndarray], tried: np.ndarray) -> tuple[list[_Fit], np.ndarray]:
         """The fits kept of candidates at ``centres`` / ``peaks`` (k, 2) px on the frame ``values`` (DN: the frame
-        ``data``, or it with trails taken off), brightest first, none within ``SHIFT_PX`` of a brighter one or of a
-        ``taken`` centre; and the starts (j, 2) px of the candidates fitted: those not starting within
-        ``NEW_START_PX`` of a start ``tried`` (j, 2) before (a component the trails taken off did not change would
-        be fitted the same way again)."""
-        paths = star_paths(cam, gyro, *window_s, centres)
+        ``data``, or it with trails taken off), each along its own trail over the exposure's ``motion``, brightest
+        first, none within ``SHIFT_PX`` of a brighter one or of a ``taken`` centre; and the starts (j, 2) px of the
+        candidates fitted: those not starting within ``NEW_START_PX`` of a start ``tried`` (j, 2) before (a
+        component the trails taken off did not change would be fitted the same way again)."""
+        paths = motion.paths(centres)
         mid = paths.shape[1] // 2
         length = np.linalg.norm(np.diff(paths, axis=1), axis=2).sum(axis=1)
         # Start at the filter's peak where the candidate's trail is about as long as the filter's (the frame
@@ -586,12 +590,12 @@ class TrailFitDeblurrer:
         ``cols`` of which the ``valid`` ones count, from ``starts`` (C, 2) px along ``knots``; each accepted one
         (:func:`_accepted`, ``along`` and ``slack`` per fit) as a :class:`_Fit` on its own ``pixels`` (rows, cols),
         None for the others."""
-        c, flux, level, cov, ok = fit_trails(values, cols.astype(np.float32), rows.astype(np.float32), valid, starts,
-                                             knots, sigma, noise, outlier_sigma=self.outlier_sigma,
-                                             min_snr=self.min_snr, max_shift_px=SHIFT_PX + slack)
+        c, flux, level, cov, ok, t = fit_trails(values, cols.astype(np.float32), rows.astype(np.float32), valid,
+                                                starts, knots, sigma, noise, outlier_sigma=self.outlier_sigma,
+                                                min_snr=self.min_snr, max_shift_px=SHIFT_PX + slack, with_model=True)
         good = _accepted(c, flux, cov, ok, starts, along, slack, shape, self.min_snr)
         return [_Fit(flux[g], c[g], knots[g], *pixels[g], math.sqrt(max(0.5 * (cov[g, 0, 0] + cov[g, 1, 1]), 0.0)),
-                     level[g], along[g]) if good[g] else None for g in range(len(c))]
+                     level[g], along[g], t[g, : len(pixels[g][0])]) if good[g] else None for g in range(len(c))]
 
     def _second_stars(self, fits: list[_Fit], data: np.ndarray, sigma: float, noise: float,
                       full_scale: float, taken: list[np.ndarray]) -> tuple[list[_Fit], list[_Fit]]:
@@ -623,7 +627,7 @@ class TrailFitDeblurrer:
             flux = np.array([fits[i].flux for i in group])
             level = np.array([fits[i].background for i in group])
             w = valid.astype(np.float64)
-            t = trail_model(x, y, c, knots, sigma, derivatives=False)[0]
+            t = _padded_values([fits[i].model for i in group], x.shape[1])
             r = (data[rows, cols] - level[:, None] - flux[:, None] * t) * w
             n = w.sum(1)
             excess = ((r * r).sum(1) / noise**2 - n) / np.sqrt(2.0 * np.maximum(n, 1.0))
@@ -703,7 +707,8 @@ class TrailFitDeblurrer:
 @dataclass
 class _Fit:
     """A trail fit: flux (DN), mid-exposure centre (2,) px, chord knots relative to it (K + 1, 2) px, the pixels
-    it was fitted on (rows, cols), its position sigma (px), background (DN) and unit vector along the trail."""
+    it was fitted on (rows, cols), its position sigma (px), background (DN), unit vector along the trail and unit
+    trail (:func:`trail_model`) on its pixels."""
 
     flux: float
     centre: np.ndarray
@@ -713,6 +718,7 @@ class _Fit:
     position_sigma: float
     background: float
     along: np.ndarray
+    model: np.ndarray
 
     @property
     def across(self) -> np.ndarray:
@@ -756,16 +762,25 @@ def _merged_boxes(boxes: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.n
 def _light(fits: list[_Fit], sigma: float, still: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each fit's modelled light on its own pixels, ``F T`` (``still``: ``F S``, its star with no motion), as
     rows, columns and DN (n,), the fits one after another in their order."""
-    light = [None] * len(fits)
-    for n_knots in sorted({len(f.knots) for f in fits}):  # one batch per chord count
-        group = [i for i, f in enumerate(fits) if len(f.knots) == n_knots]
-        rows, cols, _ = _padded([fits[i].rows for i in group], [fits[i].cols for i in group])
-        knots = np.stack([fits[i].knots for i in group])
-        model = trail_model(cols.astype(np.float64), rows.astype(np.float64), np.array([fits[i].centre for i in group]),
-                            np.zeros((len(group), 2, 2)) if still else knots, sigma, derivatives=False)[0]
-        for g, i in enumerate(group):
-            light[i] = fits[i].flux * model[g, : len(fits[i].rows)]
+    light = [f.flux * f.model for f in fits]
+    if still:
+        for n_knots in sorted({len(f.knots) for f in fits}):  # one batch per chord count
+            group = [i for i, f in enumerate(fits) if len(f.knots) == n_knots]
+            rows, cols, _ = _padded([fits[i].rows for i in group], [fits[i].cols for i in group])
+            model = trail_model(cols.astype(np.float64), rows.astype(np.float64),
+                                np.array([fits[i].centre for i in group]), np.zeros((len(group), 2, 2)), sigma,
+                                derivatives=False)[0]
+            for g, i in enumerate(group):
+                light[i] = fits[i].flux * model[g, : len(fits[i].rows)]
     return (np.concatenate([f.rows for f in fits]), np.concatenate([f.cols for f in fits]), np.concatenate(light))
+
+
+def _padded_values(values: list[np.ndarray], size: int) -> np.ndarray:
+    """Per-pixel values of several fits side by side (C, size), zero-padded as :func:`_padded` pads their pixels."""
+    out = np.zeros((len(values), size), dtype=values[0].dtype)
+    for g, v in enumerate(values):
+        out[g, : len(v)] = v
+    return out
 
 
 def _padded(rows: list[np.ndarray], cols: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

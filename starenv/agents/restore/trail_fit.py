@@ -489,9 +489,10 @@ class TrailFitDeblurrer:
             lights.append(_light(new + second, sigma, still=False))
             if round_ == MAX_ROUNDS - 1 or not busy:
                 break
-            # The next round searches the frame with the new trails taken off, where a fit's residual held more
-            # than noise (a chain of overlapping trails fitted as one candidate: the brightest first); a candidate
-            # found where one was tried before (a component the subtraction did not touch) is not fitted again.
+            # The next round searches the frame with the new trails taken off, around the fits whose residual
+            # showed another trail along their own (a chain of overlapping trails fitted as one candidate: the
+            # brightest first); a candidate found where one was tried before (a component the subtraction did not
+            # touch) is not fitted again.
             values = values.copy() if values is data else values
             rows, cols, light = lights[-1]
             np.subtract.at(values, (rows, cols), light)
@@ -609,15 +610,18 @@ class TrailFitDeblurrer:
         off, free to move along the trail as a first fit is (the model's ~1 % shape error leaves no such residual
         even on a trail of 1e7 DN: ``tests/test_trail_fit.py``).  It is kept on a first fit's acceptance, and when
         it lands no nearer than ``SHIFT_PX`` to a kept star (``fits``, those found, or a ``taken`` centre of an
-        earlier round).  Only residuals whose sum of squares exceeds the noise's
-        by ``SECOND_SCREEN`` of its spread are searched (a second trail of significance ``z`` adds about ``z^2``);
-        those fits are returned too, as the places where another star may hide."""
+        earlier round).  Only residuals whose sum of squares exceeds the noise's by ``SECOND_SCREEN`` of its spread
+        are searched (a second trail of significance ``z`` adds about ``z^2``).  The fits whose residual, matched
+        against their own trail moved ``ALONG_OFFSETS`` of its length along it, shows a trail of ``SECOND_SIGMA``
+        are returned too: where a chain of trails on one line may hide more stars.  The first star of each pair
+        found is fitted again without its second's light and replaced in ``fits``, then the second without the new
+        first's."""
         height, width = data.shape
         reach = math.floor(PSF_REACH_SIGMA * sigma + SHIFT_PX)
         offsets = np.arange(2.0, reach + 1.0)
         offsets = np.concatenate([-offsets[::-1], offsets])
         starts = []  # (fit index, offset px) of each second star to fit
-        busy = []  # the fits whose residual holds more than noise
+        busy = []  # the fits whose residual shows another trail along their own
         for n_knots in sorted({len(f.knots) for f in fits}):
             group = [i for i, f in enumerate(fits) if len(f.knots) == n_knots]
             rows, cols, valid = _padded([fits[i].rows for i in group], [fits[i].cols for i in group])

@@ -169,17 +169,14 @@ def star_paths(camera: Camera, gyro: GyroSamples, t_start: float, t_end: float, 
     """
     lt = checks.in_range("line_time_s", line_time_s, 0.0, 1e-3, unit="s")
     xy = _positions(xy_mid)
-    shift = lt * np.clip(xy[:, 1], 0.0, camera.height - 1) if lt > 0 else np.zeros(len(xy))
-    groups = np.unique(shift)
-    if len(groups) <= 1:
-        return ExposureMotion(camera, gyro, t_start + float(shift[0]) if len(xy) else t_start,
-                              t_end + float(shift[0]) if len(xy) else t_end, n_samples).paths(xy)
-    out = None
-    for s in groups:  # one group per exposure window
+    motion = ExposureMotion(camera, gyro, t_start, t_end, n_samples)
+    if lt == 0:
+        return motion.paths(xy)
+    shift = lt * np.clip(xy[:, 1], 0.0, camera.height - 1)
+    out = np.empty((len(xy), len(motion.offsets), 2))
+    for s in np.unique(shift):  # one exposure window per row
         sel = np.flatnonzero(shift == s)
-        paths = ExposureMotion(camera, gyro, t_start + s, t_end + s, n_samples).paths(xy[sel])
-        out = np.empty((len(xy),) + paths.shape[1:]) if out is None else out
-        out[sel] = paths
+        out[sel] = ExposureMotion(camera, gyro, t_start + s, t_end + s, len(motion.offsets)).paths(xy[sel])
     return out
 
 
@@ -357,15 +354,19 @@ class FrameStreaks:
     threshold_sigma: float
     min_area_px: int
 
+    @property
+    def reach_px(self) -> np.ndarray:
+        """How far (x, y px) the filter's response reaches from a pixel: half the kernel, rounded up."""
+        return np.array(self.streak.shape[::-1]) // 2 + 1
+
     def search(self, data: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The candidate streaks (centroids, peaks, responses) whose peak lies in the box ``lo`` .. ``hi`` (x, y px,
         inclusive) of ``data`` (DN), a frame of this one's shape (e.g. it with some trails taken off), found as on
         this frame: its background, noise, kernels and thresholds.  The filter reads half a kernel beyond the box,
         so the response in it is the whole frame's; a component reaching beyond that has its centroid from the
         part read."""
-        half = np.array(self.streak.shape[::-1]) // 2 + 1
-        x0, y0 = np.maximum(np.asarray(lo) - half, 0)
-        x1, y1 = np.minimum(np.asarray(hi) + half, [data.shape[1] - 1, data.shape[0] - 1])
+        x0, y0 = np.maximum(np.asarray(lo) - self.reach_px, 0)
+        x1, y1 = np.minimum(np.asarray(hi) + self.reach_px, [data.shape[1] - 1, data.shape[0] - 1])
         centroids, peaks, responses = streak_candidates(data[y0 : y1 + 1, x0 : x1 + 1], self.level, self.noise,
                                                         self.streak, self.threshold_sigma, self.min_area_px, self.spot)
         centroids, peaks = centroids + [x0, y0], peaks + [x0, y0]

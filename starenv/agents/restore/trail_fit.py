@@ -496,7 +496,7 @@ class TrailFitDeblurrer:
             values = values.copy() if values is data else values
             rows, cols, light = lights[-1]
             np.subtract.at(values, (rows, cols), light)
-            reach = np.array(found.streak.shape[::-1]) // 2 + 1  # the response changes this far from a changed pixel
+            reach = found.reach_px  # the response changes this far from a changed pixel
             centres, peaks = [], []
             for lo, hi in _merged_boxes([(np.array([f.cols.min(), f.rows.min()]) - reach,
                                           np.array([f.cols.max(), f.rows.max()]) + reach) for f in busy]):

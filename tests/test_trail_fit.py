@@ -171,8 +171,8 @@ def test_a_still_frame_comes_back_unchanged():
 
 def test_fast_frames_give_more_stars_and_smaller_errors_than_the_blurred_ones():
     # paper_000 at 60 deg/s about X (26 px trails), seed 0, frames 1-3, the scenario's detector, 3 px gate against
-    # xy_mid.  Measured: blurred 40 stars matched, trail fit 77; on the 39 stars matched in both, mean error 0.63 px
-    # blurred, 0.36 px fitted (medians 0.14 and 0.11 px: the gain is in the tail, trails cut by neighbours and edges).
+    # xy_mid.  Measured: blurred 40 stars matched, trail fit 77; on the 38 stars matched in both, mean error 0.57 px
+    # blurred, 0.26 px fitted (medians 0.13 and 0.11 px: the gain is in the tail, trails cut by neighbours and edges).
     detector = CentroidDetector()
     counts = {"blurred": 0, "fitted": 0}
     common = {"blurred": [], "fitted": []}

@@ -146,11 +146,10 @@ def test_psnr_closed_form_and_scores_of_an_unchanged_image(paper000):
 
 def test_roi_restoration_end_to_end_on_a_fast_smeared_frame():
     # paper_002 at 10 deg/s: ~65 px trails.  Measured (seed 0, frame 1, CentroidDetector with the scenario's PSF,
-    # 3 px gate against xy_mid): blurred 36 stars detected and matched, centroid error 0.737 px; RoiDeblurrer with
-    # 50 iterations: 39 stars, 1.07 px, PSNR +4.27 dB against the still reference.  Restoration wins on detections
+    # 3 px gate against xy_mid): blurred 34 stars detected and matched, centroid error 0.613 px; RoiDeblurrer with
+    # 50 iterations: 38 stars, 0.848 px, PSNR +4.49 dB against the still reference.  Restoration wins on detections
     # and PSNR, not on accuracy: under a constant rate the trail centroid is the mid-exposure position, so blurred
-    # centroids are unbiased, while RL of a 65 px uniform trail leaves along-trail ringing (on the 19 stars brighter
-    # than mag 5 matched in both: 0.36 px blurred, 0.85 px restored).
+    # centroids are unbiased, while RL of a 65 px uniform trail leaves along-trail ringing.
     base, step, truth, image = smeared("Paper002", 10.0)
     sigma = base.scenario.heads[0].psf_sigma_px
     agent = RoiDeblurrer(50, sigma)
@@ -203,8 +202,8 @@ def test_streak_patch_modes_of_the_seed_restorers_match_their_frame_modes_on_the
     # Seed 000's and seed 001's restorers on patches around the candidate streaks (region="streaks", their real-time
     # mode) against the same algorithm on the whole frame, paper_000 at 30 deg/s (10-11 px trails), the scenario's
     # detector.  Measured (recall, precision, mean centroid error px): blurred 0.875, 0.966, 0.445; seed 000 frame
-    # 0.8125, 0.968, 0.379, streaks 0.8125, 1.0, 0.420; seed 001 frame 0.875, 0.966, 0.458, streaks the same with
-    # 0.457.  The patch mode may lose at most one star of the 16 and 0.05 px.  Outside the patches the frame is the
+    # 0.8125, 0.968, 0.379, streaks 0.8125, 1.0, 0.413; seed 001 frame 0.875, 0.966, 0.458, streaks 0.8125, 1.0,
+    # 0.451.  The patch mode may lose at most one star of the 16 and 0.05 px.  Outside the patches the frame is the
     # input, bit for bit.
     base, step, truth, image = paper000
     cam = base.cameras[0]

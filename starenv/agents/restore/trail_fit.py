@@ -577,11 +577,15 @@ class TrailFitDeblurrer:
             fits += [f for f in fitted if f is not None]
         # Brightest first; a fit that lands on a brighter one's star or a taken one (a trail found twice) is dropped.
         fits.sort(key=lambda f: -f.flux)
-        kept = []
-        for fit in fits:
-            if all(float(np.hypot(*(fit.centre - p))) > SHIFT_PX for p in taken + [k.centre for k in kept]):
-                kept.append(fit)
-        return kept, centres
+        at = np.array([f.centre for f in fits]).reshape(-1, 2)
+        close = np.hypot(*(at[:, None] - at[None]).transpose(2, 0, 1)) <= SHIFT_PX
+        free = np.ones(len(fits), dtype=bool)
+        if taken:
+            free = np.hypot(*(at[:, None] - np.array(taken)[None]).transpose(2, 0, 1)).min(axis=1) > SHIFT_PX
+        keep = np.zeros(len(fits), dtype=bool)
+        for a in range(len(fits)):
+            keep[a] = free[a] and not (close[a, :a] & keep[:a]).any()
+        return [fit for fit, k in zip(fits, keep, strict=True) if k], centres
 
     def _fit_batch(self, values: np.ndarray, rows: np.ndarray, cols: np.ndarray, valid: np.ndarray,
                    pixels: list[tuple[np.ndarray, np.ndarray]], starts: np.ndarray, knots: np.ndarray,

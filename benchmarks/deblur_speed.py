@@ -31,7 +31,7 @@ import numpy as np
 
 import starenv  # noqa: F401  (registers the environments)
 from starenv.agents.base import step_input
-from starenv.agents.detect import CentroidDetector
+from starenv.agents.detect.centroid import CentroidDetector
 from starenv.agents.restore.algorithms import resharpen
 from starenv.agents.restore.frame import RichardsonLucyDeblurrer, WienerDeblurrer
 from starenv.agents.restore.kernels import frame_kernel

@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from starenv import scenario
-from starenv.agents.detect import CentroidDetector
+from starenv.agents.detect.centroid import CentroidDetector
 from starenv.scoring import match
 from starenv.sim.sensor import StarSensor
 

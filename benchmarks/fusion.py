@@ -1,4 +1,4 @@
-"""The MEKF (``starenv.agents.fusion.MekfPredictor``) against the classical pipelines on the same frames: each
+"""The MEKF (``starenv.agents.fuse.mekf.MekfPredictor``) against the classical pipelines on the same frames: each
 scenario's own pipeline (the gyro propagates the last solution open loop, every frame is solved on its own), the same
 pipeline with the filter as its predictor (gyro noise values from the scenario's datasheet, as a user would configure
 them) and, where it matters, frame-by-frame solutions (no predictor: lost-in-space identification on every frame)::
@@ -41,7 +41,7 @@ CASES = {
     "stress_drops (bursty drops)": ("stress_drops", {}),
     "paper_004 (three heads)": ("paper_004", {}),
 }
-FILTER = {"predictor": "starenv.agents.fusion:MekfPredictor"}
+FILTER = {"predictor": "starenv.agents.fuse:MekfPredictor"}
 FRAME_BY_FRAME = {"predictor": None}
 # stress_drops at 10 frames/s for 30 s, every frame lost in a bad spell: bad spells of 1 / 0.05 = 20 frames (2 s) on
 # average (geometric: 1 in 12 lasts 5 s or more), good spells of 25 frames; 44 % of frames lost

@@ -47,8 +47,8 @@ def main() -> None:
     for rate in (0.0, 2.0, 5.0, 10.0):
         per_axis = rate / math.sqrt(3.0)
         overrides = {"motion.rate_dps": [per_axis] * 3, "lost_after_steps": 10**6}
-        for name, identifier in (("lost-in-space", "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier"),
-                                 ("tracking", "starenv.agents.identify.tracking:TrackingIdentifier")):
+        for name, identifier in (("lost-in-space", "starenv.agents.identify:LostInSpaceIdentifier"),
+                                 ("tracking", "starenv.agents.identify:TrackingIdentifier")):
             s, _ = run("paper_002", overrides, Pipeline(identifier=identifier), args.frames)
             err = s.get("attitude_error_arcsec", {}).get("median", float("nan"))
             id_rate = s.get("id_rate", {}).get("mean", 0.0)

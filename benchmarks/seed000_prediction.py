@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import StarMeasurements, step_input
-from starenv.agents.predict import FirstOrderPredictor, QuaternionPredictor
+from starenv.agents.predict.gyro import FirstOrderPredictor, QuaternionPredictor
 from starenv.env import StarSensorEnv
 from starenv.sim.conventions import ARCSEC
 

@@ -4,7 +4,7 @@ comparators and the lost-in-space and tracking identifiers, all on the same fram
 
     python benchmarks/seed002_identification.py [--frames N] [--seed S] [--out FILE.json]
 
-Frames follow the paper's test protocol on the shipped weights' task (``datasets/seed002_orion.toml``: 128 x 128 px,
+Frames follow the paper's test protocol on the shipped weights' task (``datasets/paper002_orion.toml``: 128 x 128 px,
 12 x 12 deg, 92 ms): head 0's boresight on a random navigation star of the weights' classes at mid-exposure, roll
 uniform, rate two-axis (|(wx, wy)| = w in a uniform direction, wz = 0) or three-axis (equal magnitudes, random
 signs, resultant w), sensor noise of paper_002's detector, no false or missing stars.  The identifiers get the
@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from starenv.agents.detect import CentroidDetector  # noqa: E402
+from starenv.agents.detect.centroid import CentroidDetector  # noqa: E402
 from starenv.agents.identify.geometry import body_vectors  # noqa: E402
 from starenv.agents.identify.grid import GridIdentifier  # noqa: E402
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier  # noqa: E402
@@ -49,7 +49,7 @@ from starenv.datasets import load_spec, navigation_stars  # noqa: E402
 from starenv.datasets.samples import draw, render  # noqa: E402
 from starenv.sim.sky import load_catalog  # noqa: E402
 
-SPEC = ROOT / "datasets" / "seed002_orion.toml"
+SPEC = ROOT / "datasets" / "paper002_orion.toml"
 PAPER_PX_PER_OURS = 8.0  # the paper's 12 um pixels vs this sensor's 96 um
 MAX_STARS = 30  # detections handed to the identifiers (the brightest)
 LIS_PATTERN_STARS = 8  # lost in space forms patterns from this many brightest (default 12: 30 s a dense frame here)
@@ -86,7 +86,7 @@ def identifiers(names: tuple[str, ...] = AGENTS, network_weights: str | None = N
     out = {}
     for name in names:
         if name == "network":
-            from starenv.agents.learned.identifier import DEFAULT_WEIGHTS, NetworkIdentifier
+            from starenv.agents.identify.network import DEFAULT_WEIGHTS, NetworkIdentifier
 
             out[name] = NetworkIdentifier(network_weights or DEFAULT_WEIGHTS)
         else:
@@ -179,9 +179,9 @@ def paper_size_inference_ms(repeats: int = 5) -> float:
     256^2, D 64, depth 8, 6 heads; untrained weights, the same arithmetic)."""
     import torch
 
-    from starenv.agents.learned.seed002 import Seed002Config, Seed002Net
+    from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
 
-    net = Seed002Net(Seed002Config()).eval()
+    net = MainStarNet(MainStarConfig()).eval()
     x = torch.full((1, 1024, 1024), 100, dtype=torch.int32)
     out = []
     with torch.no_grad():

@@ -38,9 +38,9 @@ from scipy.spatial.transform import Rotation
 
 from starenv import scenario as scenario_mod
 from starenv.agents.correct.baselines import PiecewiseLinearMap, PolynomialMap
+from starenv.agents.correct.ground import train_ground
 from starenv.agents.correct.legendre import LegendreCorrector, LegendreModel, fit_least_squares, learn_frame
-from starenv.agents.learned.legendre import train_ground
-from starenv.agents.solve import wahba_svd
+from starenv.agents.solve.solvers import wahba_svd
 from starenv.datasets.pairs import coverage, frame_pairs, orbit_pairs
 from starenv.sim.optics import SEED003_PRESETS
 from starenv.sim.sky import load_catalog
@@ -212,7 +212,7 @@ def loop(scenario: str, steps: int, skip: int) -> None:
     print("| pipeline | prediction error (px) | distortion left (px) | attitude error (arcsec) | ID rate | "
           "corrector ms/step |")
     print("|---|---|---|---|---|---|")
-    corrector = {"corrector": "starenv.agents.correct.legendre:LegendreCorrector"}
+    corrector = {"corrector": "starenv.agents.correct:LegendreCorrector"}
     for name, agents, options in (("tracking", {"corrector": None}, {}),
                                   ("tracking + RLS corrector", corrector, {"corrector": {"learner": "rls"}}),
                                   ("tracking + Adam corrector (paper)", corrector, {"corrector": {"learner": "adam"}})):

@@ -116,7 +116,7 @@ def orbit_rms(catalog, cameras, noise_px: float, seconds: float, seed: int) -> d
     """Per-axis RMS attitude error (arcsec, body axes; z is head 0's boresight) at 5 Hz on a 500 km, 45 deg orbit,
     head 0 alone vs all heads, from the truth-identified stars (SVD solution).  The body is the LVLH frame turned
     180 deg about x so that head 0 looks at the zenith."""
-    from starenv.agents.solve import SvdSolver
+    from starenv.agents.solve.solvers import SvdSolver
 
     orbit = LeoNadir(500e3, math.radians(45.0), raan=math.radians(122.119)).trajectory()
     flip = Rotation.from_euler("x", 180.0, degrees=True)
@@ -145,9 +145,9 @@ def smeared_frames(rates_dps, steps: int) -> dict:
     from starenv.env import StarSensorEnv
     from starenv.episode import run_episode
 
-    identifiers = {"GRNN, sides": "starenv.agents.identify.grnn:GrnnIdentifier",
-                   "lost in space": "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier",
-                   "tracking": "starenv.agents.identify.tracking:TrackingIdentifier"}
+    identifiers = {"GRNN, sides": "starenv.agents.identify:GrnnIdentifier",
+                   "lost in space": "starenv.agents.identify:LostInSpaceIdentifier",
+                   "tracking": "starenv.agents.identify:TrackingIdentifier"}
     out = {}
     for rate in rates_dps:
         env = StarSensorEnv("paper_004", overrides={"motion.rate_dps": [rate / math.sqrt(3.0)] * 3})

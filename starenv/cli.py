@@ -298,7 +298,7 @@ def cmd_dataset(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["train"]:  # its own parser, in the only module that imports torch
-        from starenv.agents.learned.train import main as train_main
+        from starenv.agents.identify.network_train import main as train_main
 
         try:
             return train_main(argv[1:])

@@ -10,7 +10,7 @@ the limit in the message (``MAX_TRAIL_PX``, ``MAX_FRAME_PIXELS``, ``MAX_EPISODE_
 data: the only code it can name is an agent class in ``[pipeline]``, loaded under the rules of
 ``starenv.agents.pipeline.load_agent``.
 
-Layout (see the bundled files in ``starenv/data/scenarios/`` for complete, commented examples)::
+Layout (see the bundled files in ``scenarios/`` for complete, commented examples)::
 
     name, description, seed, duration_s, frame_rate_hz, exposure_s, mag_limit, epoch,
     sky_mag_per_arcsec2, lost_after_steps, availability_threshold_arcsec
@@ -81,7 +81,7 @@ from starenv.sim.optics import (
 from starenv.sim.photometry import Photometry, StrayLight
 from starenv.sim.sensor import HeadSpec
 
-SCENARIO_DIR = Path(str(resources.files("starenv").joinpath("data", "scenarios")))  # package data
+SCENARIO_DIR = Path(str(resources.files("starenv.scenarios")))  # package data: the repository's scenarios/
 
 
 class ScenarioError(ConfigError):

@@ -127,7 +127,7 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
         own = Pipeline.for_scenario(sc).describe()
         assert runs["tracking"].pipeline.build(sc).describe() == own
         lis = runs["lost_in_space"].pipeline.build(sc).describe()
-        assert lis == {**own, "identifier": "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier"}
+        assert lis == {**own, "identifier": "starenv.agents.identify:LostInSpaceIdentifier"}
     swept = [r for r in bench.runs if r.sweep_key == "motion.rate_dps"]
     assert {r.scenario for r in swept} == {"paper_000", "paper_002"}
     rates = sorted({r.sweep_value for r in swept if r.scenario == "paper_002"})
@@ -135,9 +135,9 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
     assert all(math.hypot(*r.overrides["motion.rate_dps"]) == pytest.approx(r.sweep_value) for r in swept)
     # every deblurrer of the seed papers runs, each beside a blurred baseline on the same scenario
     deblurrers = {r.pipeline.build(scenario_mod.load(r.scenario)).describe()["deblurrer"] for r in bench.runs}
-    assert {"starenv.agents.restore.iteration.deblurrer:IterationNetDeblurrer",
-            "starenv.agents.restore.curvature:CurvatureRLDeblurrer", "starenv.agents.restore.frame:WienerDeblurrer",
-            "starenv.agents.restore.trail_fit:TrailFitDeblurrer"} < deblurrers
+    assert {"starenv.agents.restore:IterationNetDeblurrer",
+            "starenv.agents.restore:CurvatureRLDeblurrer", "starenv.agents.restore:WienerDeblurrer",
+            "starenv.agents.restore:TrailFitDeblurrer"} < deblurrers
 
 
 def test_working_rate_bench_sweeps_each_axis_in_5_dps_steps_with_every_restorer():

@@ -80,7 +80,7 @@ def test_pipeline_choices_merge_in_one_place():
 
 @pytest.mark.parametrize("old", sorted(MOVED))
 def test_an_agent_path_that_moved_names_its_new_home(old):
-    role = "identifier" if "identify" in old else "deblurrer"
+    role = "identifier" if "identify" in MOVED[old] else "predictor" if "fuse" in MOVED[old] else "deblurrer"
     with pytest.raises(ValueError, match=f"has moved: write '{MOVED[old]}'"):
         load_agent(old, role)
     assert type(load_agent(MOVED[old], role)).__name__ == old.split(":")[1]

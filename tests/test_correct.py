@@ -135,7 +135,7 @@ def test_corrector_in_the_loop_on_paper_003():
     from starenv.episode import run_episode
 
     records = {}
-    for name, agents in (("none", {}), ("rls", {"corrector": "starenv.agents.correct.legendre:LegendreCorrector"})):
+    for name, agents in (("none", {}), ("rls", {"corrector": "starenv.agents.correct:LegendreCorrector"})):
         env = StarSensorEnv("paper_003")
         records[name] = run_episode(env, Pipeline.for_scenario(env.scenario, agents), seed=0, steps=4).records
     last, before = records["rls"][-1], records["none"][-1]

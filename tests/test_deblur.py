@@ -8,7 +8,7 @@ import pytest
 
 import starenv  # noqa: F401  (registers the environments)
 from starenv.agents.base import step_input
-from starenv.agents.detect import CentroidDetector
+from starenv.agents.detect.centroid import CentroidDetector
 from starenv.agents.pipeline import Pipeline
 from starenv.agents.restore.algorithms import resharpen, robust_background
 from starenv.agents.restore.curvature import CurvatureRLDeblurrer
@@ -185,7 +185,7 @@ def test_seed_restorers_keep_the_detectors_precision_and_recall(paper000, agent_
 def test_pipeline_keeps_restorations_and_the_episode_records_them():
     env = gym.make("StarEnv/Paper000-v0")
     pipe = Pipeline.for_scenario(env.unwrapped.scenario,
-                                 agents={"deblurrer": "starenv.agents.restore.roi:RoiDeblurrer"},
+                                 agents={"deblurrer": "starenv.agents.restore:RoiDeblurrer"},
                                  options={"deblurrer": {"iterations": 5, "psf_sigma_px": 0.8}})
     result = run_episode(env, pipe, seed=0, steps=2)
     raw, restored = pipe.report.restorations[0].raw, pipe.report.restorations[0].restored

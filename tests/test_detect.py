@@ -11,7 +11,7 @@ from scipy.spatial.distance import cdist
 
 from starenv import scenario
 from starenv.agents.base import StarDetector
-from starenv.agents.detect import CentroidDetector
+from starenv.agents.detect.centroid import CentroidDetector
 from starenv.sim.conventions import pointing
 from starenv.sim.imager import Detector, DetectorSpec
 from starenv.sim.motion import ConstantRate, Trajectory

@@ -127,8 +127,8 @@ def test_least_squares_recovers_planted_coefficients():
 def test_torch_ground_training_matches_least_squares():
     """Adam (lr 1e-4, batch 128, 8:2 split) on noise-free planted pairs: without the forgetting factor it reaches the
     least-squares weights; with the paper's tau = 0.999 it stays within the jitter of its lr-sized steps."""
+    from starenv.agents.correct.ground import train_ground
     from starenv.agents.correct.legendre import LegendreModel, fit_least_squares
-    from starenv.agents.learned.legendre import train_ground
 
     cam, w, measured = _planted()
     reference = measured - LegendreModel(w).offset(measured, cam)

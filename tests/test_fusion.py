@@ -10,9 +10,9 @@ from scipy.stats import chi2
 
 from starenv import scenario
 from starenv.agents.base import AttitudeFilter, StarMeasurements, StepInput
-from starenv.agents.fusion import MekfPredictor, process_noise
+from starenv.agents.fuse.mekf import MekfPredictor, process_noise
 from starenv.agents.pipeline import Pipeline
-from starenv.agents.solve import QuestSolver
+from starenv.agents.solve.solvers import QuestSolver
 from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
 from starenv.sim.conventions import ARCSEC, DEG
@@ -236,7 +236,7 @@ def test_the_filter_is_the_pipelines_estimate_and_beats_frame_by_frame_roll():
     gyro = env.scenario.gyro
     options = {"predictor": {"arw_deg_rthr": gyro.arw_deg_rthr, "rrw_deg_hr_rthr": gyro.rrw_deg_hr_rthr,
                              "bias_instability_deg_hr": gyro.bias_instability_deg_hr}}
-    fused = Pipeline.for_scenario(env.scenario, {"predictor": "starenv.agents.fusion:MekfPredictor"}, options)
+    fused = Pipeline.for_scenario(env.scenario, {"predictor": "starenv.agents.fuse:MekfPredictor"}, options)
     assert isinstance(fused.agents["predictor"], AttitudeFilter)
     rms = {}
     for name, pipe in (("classical", Pipeline.for_scenario(env.scenario)), ("filter", fused)):

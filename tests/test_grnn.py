@@ -133,7 +133,7 @@ def test_training_draws_are_reproducible_alone(nav):
 
 
 def test_pluggable_by_name_with_options():
-    pipe = Pipeline(identifier="starenv.agents.identify.grnn:GrnnIdentifier", options={"identifier": {"rho": 0.02}})
+    pipe = Pipeline(identifier="starenv.agents.identify:GrnnIdentifier", options={"identifier": {"rho": 0.02}})
     assert pipe.agents["identifier"].rho == 0.02
     with pytest.raises(ValueError, match="feature must be"):
         GrnnIdentifier(feature="q")

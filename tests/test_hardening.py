@@ -54,7 +54,7 @@ class Solver:
     """A valid solver (from a module outside starenv)."""
 
     def solve(self, body, inertial, weights=None):
-        from starenv.agents.solve import SvdSolver
+        from starenv.agents.solve.solvers import SvdSolver
         return SvdSolver().solve(body, inertial, weights)
 
 
@@ -117,7 +117,7 @@ def test_a_class_is_checked_against_its_protocol_before_construction(probe):
         load_agent("hardening_probe:NotASolver", "solver", trust=["hardening_probe"], option=1)
     assert not (probe / "constructed.marker").exists()
     for spec, message in (("starenv.cli:main", "not a class"),
-                          ("starenv.agents.solve:Rotation", "defined in 'scipy"),
+                          ("starenv.agents.solve.solvers:Rotation", "defined in 'scipy"),
                           ("starenv.agents.detect:CentroidDetector", "no method solve")):
         with pytest.raises(ValueError, match=message):
             load_agent(spec, "solver")

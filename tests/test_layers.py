@@ -20,7 +20,8 @@ import starenv
 
 ROOT = Path(starenv.__file__).resolve().parent
 LAYERS = {
-    "checks": 0, "files": 0, "parallel": 0, "sim": 1, "config": 2, "scenario": 2, "datasets": 3, "agents": 4,
+    "checks": 0, "files": 0, "parallel": 0, "scenarios": 0, "sim": 1, "config": 2, "scenario": 2, "datasets": 3,
+    "agents": 4,
     "env": 5, "episode": 5, "scoring": 5, "view": 5, "registration": 5, "wrappers": 5, "vector": 5,
     "record": 6, "bench": 6, "cli": 6, "__init__": 6,
 }

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from starenv.agents.learned.seed002 import Seed002Config, Seed002Net, parameter_count
-from starenv.agents.learned.train import parse_config, train
+from starenv.agents.identify.network_model import MainStarConfig, MainStarNet, parameter_count
+from starenv.agents.identify.network_train import parse_config, train
 from starenv.datasets.shards import write_npz
 
 
 def test_paper_architecture_shapes():
-    net = Seed002Net(Seed002Config())  # 4331 classes, 256 input, D 64, depth 8, 6 heads
+    net = MainStarNet(MainStarConfig())  # 4331 classes, 256 input, D 64, depth 8, 6 heads
     frames = torch.full((2, 1024, 1024), 100, dtype=torch.int32)  # the paper's sensor, resized to 256 inside
     assert net.preprocess(frames).shape == (2, 1, 256, 256)
     assert net.features(frames).shape == (2, 64, 16, 16)  # four stride-2 stages: 256 tokens of 64
@@ -24,26 +24,26 @@ def test_paper_architecture_shapes():
 
 
 @pytest.mark.parametrize("config", [
-    Seed002Config(),
-    Seed002Config(n_classes=216, input_size=64, stem_width=8, widths=(8, 16, 16, 32, 32, 64), depth=4, mlp_dim=128),
-    Seed002Config(n_classes=10, input_size=32, widths=(4, 8, 8, 8, 16, 16), depth=1, heads=3, head_dim=5),
+    MainStarConfig(),
+    MainStarConfig(n_classes=216, input_size=64, stem_width=8, widths=(8, 16, 16, 32, 32, 64), depth=4, mlp_dim=128),
+    MainStarConfig(n_classes=10, input_size=32, widths=(4, 8, 8, 8, 16, 16), depth=1, heads=3, head_dim=5),
 ])
 def test_parameter_count_closed_form(config):
-    net = Seed002Net(config)
+    net = MainStarNet(config)
     assert sum(p.numel() for p in net.parameters()) == parameter_count(config)
 
 
 def test_paper_configuration_size_against_the_paper():
     # The paper's model file is 47.1 MB; with the widths and MLP it does not give, ours has 1.54 M float32
     # parameters (6.1 MB): the same order only if the paper's file held more (e.g. optimiser state).
-    n = parameter_count(Seed002Config())
+    n = parameter_count(MainStarConfig())
     assert n == 1_535_611
     assert 4 * n < 47.1e6
 
 
 def test_bad_config_names_the_field():
     with pytest.raises(ValueError, match="input_size"):
-        Seed002Config(input_size=100)
+        MainStarConfig(input_size=100)
     with pytest.raises(ValueError, match="--set 'depht=2'"):
         parse_config(["depht=2"], 5)
 
@@ -69,7 +69,7 @@ def _toy_dataset(folder, n, seed):
 def toy(tmp_path, monkeypatch):
     _toy_dataset(tmp_path / "train", 256, 0)
     _toy_dataset(tmp_path / "val", 128, 1)
-    monkeypatch.setattr("starenv.agents.learned.train._class_hips", lambda spec: np.arange(1, 5))
+    monkeypatch.setattr("starenv.agents.identify.network_train._class_hips", lambda spec: np.arange(1, 5))
     return tmp_path
 
 

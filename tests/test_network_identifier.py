@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from starenv.agents.detect import CentroidDetector
-from starenv.agents.learned.identifier import DEFAULT_WEIGHTS, NetworkIdentifier
-from starenv.agents.learned.seed002 import Seed002Config, parameter_count
+from starenv.agents.detect.centroid import CentroidDetector
+from starenv.agents.identify.network import DEFAULT_WEIGHTS, NetworkIdentifier
+from starenv.agents.identify.network_model import MainStarConfig, parameter_count
 from starenv.datasets import navigation_stars
 from starenv.sim.sky import load_catalog
 
@@ -35,13 +35,13 @@ def setup():
 def test_shipped_weights_are_tensors_with_their_manifest():
     state = torch.load(DEFAULT_WEIGHTS / "weights.pt", weights_only=True)
     manifest = json.loads((DEFAULT_WEIGHTS / "manifest.json").read_text())
-    config = Seed002Config.from_dict(manifest["config"])
+    config = MainStarConfig.from_dict(manifest["config"])
     assert all(isinstance(v, torch.Tensor) for v in state.values())
     assert sum(v.numel() for k, v in state.items() if "running" not in k and "num_batches" not in k) == \
         parameter_count(config)
     assert len(manifest["classes_hip"]) == config.n_classes
     assert (DEFAULT_WEIGHTS / "weights.pt").stat().st_size < 50e6
-    assert manifest["dataset"]["name"] == "seed002_orion" and len(manifest["dataset"]["spec_digest"]) == 64
+    assert manifest["dataset"]["name"] == "paper002_orion" and len(manifest["dataset"]["spec_digest"]) == 64
 
 
 def _frames(spec, rates, count):

@@ -23,13 +23,24 @@ SCENARIOS = {"paper_000", "paper_001", "paper_002", "paper_003", "paper_004", "s
 
 
 def test_bundled_files_are_package_resources():
-    data = resources.files("starenv").joinpath("data")
-    found = {p.name.removesuffix(".toml") for p in data.joinpath("scenarios").iterdir() if p.name.endswith(".toml")}
+    data = resources.files("starenv.scenarios")
+    found = {p.name.removesuffix(".toml") for p in data.iterdir() if p.name.endswith(".toml")}
     assert found == SCENARIOS == set(bundled_names())
     assert data.joinpath("benches", "bundled.toml").is_file()
     assert resources.files("starenv").joinpath("py.typed").is_file()
-    assert Path(str(data.joinpath("scenarios"))) == SCENARIO_DIR and Path(str(data.joinpath("benches"))) == BENCH_DIR
+    assert Path(str(data)) == SCENARIO_DIR and Path(str(data.joinpath("benches"))) == BENCH_DIR
     assert load_bench("bundled").runs  # the bundled bench resolves its scenarios by name
+
+
+def test_the_bundled_files_live_at_the_repository_top_level_once():
+    """The design card's layout: scenarios/ at the top (mapped to starenv.scenarios at build time), no second copy
+    inside the package, and pyproject's package list is exactly the package tree (a package missing from it would be
+    left out of the wheel)."""
+    assert SCENARIO_DIR == ROOT / "scenarios" and not (ROOT / "starenv" / "data").exists()
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    tree = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "starenv").rglob("__init__.py")}
+    assert set(setuptools["packages"]) == tree | {"starenv.scenarios"}
+    assert setuptools["package-dir"] == {"starenv.scenarios": "scenarios"}
 
 
 def test_version_flag_matches_package(capsys):
@@ -53,9 +64,10 @@ def test_wheel_carries_package_data(tmp_path):
                     "-w", str(tmp_path)], check=True, cwd=tmp_path)
     (wheel,) = tmp_path.glob("starenv-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
-    assert {f"starenv/data/scenarios/{n}.toml" for n in SCENARIOS} <= names
-    assert {"starenv/data/benches/bundled.toml", "starenv/py.typed",
-            "starenv/agents/restore/iteration/iteration_net.npz"} <= names
+    assert {f"starenv/scenarios/{n}.toml" for n in SCENARIOS} <= names
+    assert {"starenv/scenarios/benches/bundled.toml", "starenv/py.typed",
+            "starenv/agents/restore/iteration/iteration_net.npz",
+            "starenv/agents/identify/weights/paper002_orion/weights.pt"} <= names
     assert not any(n.startswith(("tests/", "benchmarks/")) for n in names)
     # installed from the wheel and run from another folder: every bundled id registers and a bundled env steps
     site = tmp_path / "site"

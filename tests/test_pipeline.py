@@ -5,7 +5,7 @@ import pytest
 
 from starenv import scenario as scenario_mod
 from starenv.agents.pipeline import Pipeline, load_agent
-from starenv.agents.solve import SvdSolver
+from starenv.agents.solve.solvers import SvdSolver
 from starenv.cli import main
 from starenv.env import StarSensorEnv
 from starenv.scoring import flatten, summarize
@@ -28,7 +28,7 @@ def test_agents_plug_in_as_instance_class_or_string():
     assert isinstance(load_agent(SvdSolver(), "solver"), SvdSolver)
     assert isinstance(load_agent(SvdSolver, "solver"), SvdSolver)
     assert isinstance(load_agent("starenv.agents.solve:SvdSolver", "solver"), SvdSolver)
-    tracking = load_agent("starenv.agents.identify.tracking:TrackingIdentifier", "identifier", gate_px=7.0)
+    tracking = load_agent("starenv.agents.identify:TrackingIdentifier", "identifier", gate_px=7.0)
     assert tracking.gate_px == 7.0
     assert load_agent(None, "deblurrer") is None
 
@@ -36,9 +36,9 @@ def test_agents_plug_in_as_instance_class_or_string():
 @pytest.mark.parametrize(
     ("spec", "role", "message"),
     [
-        ("starenv.agents.solve.SvdSolver", "solver", "module:Class"),
+        ("starenv.agents.solve.solvers.SvdSolver", "solver", "module:Class"),
         ("starenv.agents.nowhere:Thing", "solver", "cannot load"),
-        ("starenv.agents.solve:Nothing", "solver", "cannot load"),
+        ("starenv.agents.solve.solvers:Nothing", "solver", "cannot load"),
         ("starenv.agents.solve:SvdSolver", "detector", "StarDetector protocol"),
         ("starenv.agents.solve:SvdSolver", "painter", "unknown agent role"),
     ],

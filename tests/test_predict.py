@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import Prediction, Predictor, StarMeasurements, StepInput, step_input
-from starenv.agents.predict import FirstOrderPredictor, QuaternionPredictor
+from starenv.agents.predict.gyro import FirstOrderPredictor, QuaternionPredictor
 from starenv.env import StarSensorEnv
 from starenv.sim.conventions import ARCSEC
 from starenv.sim.gyro import GyroSamples

@@ -560,7 +560,7 @@ def filtered(tmp_path_factory):
     """paper_000 at 1 deg/s with the MEKF as predictor, recorded to MCAP and live to Rerun."""
     tmp = tmp_path_factory.mktemp("filtered")
     env = StarSensorEnv("paper_000", {"motion.rate_dps": [1.0, 0.0, 0.0]})
-    pipe = Pipeline.for_scenario(env.scenario, {"predictor": "starenv.agents.fusion:MekfPredictor"})
+    pipe = Pipeline.for_scenario(env.scenario, {"predictor": "starenv.agents.fuse:MekfPredictor"})
     seen = Posterior()
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("CI", "1")

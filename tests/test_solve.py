@@ -10,8 +10,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from starenv.agents import solve
 from starenv.agents.base import AttitudeSolver
+from starenv.agents.solve import solvers as solve
 from starenv.sim.conventions import ARCSEC, DEG, angle_between
 
 SOLVERS = [solve.QuestSolver(), solve.DavenportSolver(), solve.SvdSolver()]

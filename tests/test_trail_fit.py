@@ -8,7 +8,7 @@ import pytest
 
 import starenv  # noqa: F401  (registers the environments)
 from starenv.agents.base import step_input
-from starenv.agents.detect import CentroidDetector
+from starenv.agents.detect.centroid import CentroidDetector
 from starenv.agents.restore import trail_fit
 from starenv.agents.restore.kernels import frame_streaks
 from starenv.agents.restore.trail_fit import TrailFitDeblurrer, _Fit, chords, fit_trail, trail_model

@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import sys
 import time
 from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from starenv.agents import MOVED
 from starenv.agents.base import (
     MAX_STARS,
     ROLE_PROTOCOLS,
@@ -48,18 +50,8 @@ DEFAULTS = {
     "deblurrer": None,
     "detector": "starenv.agents.detect:CentroidDetector",
     "corrector": None,
-    "identifier": "starenv.agents.identify.tracking:TrackingIdentifier",
+    "identifier": "starenv.agents.identify:TrackingIdentifier",
     "solver": "starenv.agents.solve:QuestSolver",
-}
-MOVED = {  # agents' former "module:Class" paths -> where they live now
-    "starenv.agents.identify:TrackingIdentifier": "starenv.agents.identify.tracking:TrackingIdentifier",
-    "starenv.agents.identify:LostInSpaceIdentifier": "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier",
-    "starenv.agents.deblur:RoiDeblurrer": "starenv.agents.restore.roi:RoiDeblurrer",
-    "starenv.agents.deblur:RichardsonLucyDeblurrer": "starenv.agents.restore.frame:RichardsonLucyDeblurrer",
-    "starenv.agents.deblur:WienerDeblurrer": "starenv.agents.restore.frame:WienerDeblurrer",
-    "starenv.agents.curvature:CurvatureRLDeblurrer": "starenv.agents.restore.curvature:CurvatureRLDeblurrer",
-    "starenv.agents.neural.agent:IterationNetDeblurrer":
-        "starenv.agents.restore.iteration.deblurrer:IterationNetDeblurrer",
 }
 
 
@@ -160,6 +152,16 @@ def load_agent(spec: Any, role: str, *, trust: tuple[str, ...] = (), **kwargs) -
     return agent
 
 
+def class_path(cls: type) -> str:
+    """``"module:Class"`` for ``cls``: the package door that exports it (the outermost one), else its module."""
+    parts = cls.__module__.split(".")
+    for n in range(1, len(parts)):
+        door = sys.modules.get(".".join(parts[:n]))
+        if cls.__name__ in getattr(door, "__all__", ()) and getattr(door, cls.__name__, None) is cls:
+            return f"{door.__name__}:{cls.__name__}"
+    return f"{cls.__module__}:{cls.__name__}"
+
+
 class Pipeline:
     """Predictor, deblurrer, detector, distortion corrector, identifier and solver as one policy.
 
@@ -202,8 +204,9 @@ class Pipeline:
         return [] if self.sensor is None else self.sensor.cameras
 
     def describe(self) -> dict[str, str]:
-        """Role -> agent class path (``None`` where the role is empty)."""
-        return {r: None if a is None else f"{type(a).__module__}:{type(a).__name__}" for r, a in self.agents.items()}
+        """Role -> agent class path (``None`` where the role is empty), through its package door where the door
+        exports it (``starenv.agents.identify:TrackingIdentifier``)."""
+        return {r: None if a is None else class_path(type(a)) for r, a in self.agents.items()}
 
     def reset(self, sensor: SensorInfo) -> None:
         """Prepare for an episode of a sensor (``env.unwrapped.sensor_info``): cameras, onboard catalog."""

@@ -1,6 +1,6 @@
 """Benchmark files: scenarios x agent pipelines x seeds, with one scenario key swept per run group.
 
-A bench file is TOML (bundled ones are package data in ``starenv/data/benches/``, named without ``.toml``)::
+A bench file is TOML (bundled ones are package data in ``scenarios/benches/``, named without ``.toml``)::
 
     name = "my-bench"                 # optional, defaults to the file's stem
     description = "..."               # optional
@@ -54,12 +54,12 @@ from typing import Any
 from starenv import scenario as scenario_mod
 from starenv.config import ConfigError, Table, is_number, parse_toml
 
-BENCH_DIR = Path(str(resources.files("starenv").joinpath("data", "benches")))  # package data
+BENCH_DIR = Path(str(resources.files("starenv.scenarios").joinpath("benches")))  # package data: scenarios/benches/
 MCAP_RECORDER = "starenv.record.mcap:McapRecorder"
 PRESETS: dict[str, dict[str, str]] = {
     "scenario": {},
-    "lost_in_space": {"identifier": "starenv.agents.identify.lost_in_space:LostInSpaceIdentifier"},
-    "tracking": {"identifier": "starenv.agents.identify.tracking:TrackingIdentifier"},
+    "lost_in_space": {"identifier": "starenv.agents.identify:LostInSpaceIdentifier"},
+    "tracking": {"identifier": "starenv.agents.identify:TrackingIdentifier"},
 }
 FORMAT = 1  # bumps when the meaning of a run's identity changes
 

@@ -3,7 +3,7 @@
 A spec is a TOML file (or dict), validated on load; a bad value raises :class:`DatasetError` naming the file and the
 dotted key.  Layout (every table but the top level is optional)::
 
-    name = "seed002_orion"
+    name = "paper002_orion"
     kind = "main_star"            # "main_star": raw image + boresight star label (seed 002)
                                   # "centroids": truth centroids with HIP ids, false stars id -1 (seed 004)
                                   # "position_pairs": measured / reference star positions (seed 003)

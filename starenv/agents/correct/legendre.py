@@ -284,7 +284,7 @@ def learn_frame(corrector: LegendreCorrector, measured: np.ndarray, catalog_id: 
     """One on-orbit step without images: correct the measured positions (n, 2) px of correctly identified stars
     (``catalog_id``, HIP numbers of ``catalog``), solve the attitude from them (SVD Wahba, unweighted) and let the
     corrector learn with it, as the pipeline does.  Returns the solved attitude (inertial -> body)."""
-    from starenv.agents.solve import wahba_svd
+    from starenv.agents.solve.solvers import wahba_svd
 
     stars = corrector.correct(StarMeasurements(measured, catalog_id=catalog_id), head, camera)
     body = camera.mounting.inv().apply(camera.unproject(stars.xy))

@@ -46,7 +46,7 @@ from scipy.spatial.transform import Rotation
 from starenv import checks
 from starenv.agents.base import StarMeasurements
 from starenv.agents.identify.geometry import chord
-from starenv.agents.solve import wahba_svd
+from starenv.agents.solve.solvers import wahba_svd
 from starenv.datasets.triangles import nearest_two, noisy_three_sides, three_sides
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog

@@ -93,7 +93,7 @@ from starenv.agents.identify.geometry import (
     same_matches,
     with_ids,
 )
-from starenv.agents.solve import wahba_svd
+from starenv.agents.solve.solvers import wahba_svd
 from starenv.sim.optics import Camera, NoDistortion
 from starenv.sim.sky import StarCatalog
 
@@ -131,7 +131,7 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
 
 def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
     """The attitude (3, 3), inertial -> body, minimising sum |b - A r|^2 over pairs of unit vectors (n, 3): the SVD
-    solution of Wahba's problem as :func:`~starenv.agents.solve.wahba_svd`, for one set of pairs."""
+    solution of Wahba's problem as :func:`~starenv.agents.solve.solvers.wahba_svd`, for one set of pairs."""
     u, _, vt, info = dgesvd(body.T.dot(inertial))  # LAPACK directly: numpy's wrapper costs more than the solution
     if info != 0:
         u, _, vt = np.linalg.svd(body.T @ inertial)

@@ -73,7 +73,7 @@ from starenv.agents.identify.geometry import (
 )
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
 from starenv.agents.identify.verify import chance_match, false_match_probability
-from starenv.agents.solve import wahba_svd
+from starenv.agents.solve.solvers import wahba_svd
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc
 
-from starenv.agents.solve import wahba_svd
+from starenv.agents.solve.solvers import wahba_svd
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 

@@ -7,7 +7,7 @@ positions, normalised units) is trained on mini-batches of 128 stars with the po
 eps 1e-8) followed, each step, by the forgetting factor ``W <- tau W`` (tau = 0.999): the paper's Eq. 25.
 Deterministic on CPU for a given seed.  torch is imported inside :func:`train_ground` only.
 
-    python -m starenv.agents.learned.legendre SCENARIO --out ground.npz [--frames 200] [--method lstsq|torch]
+    python -m starenv.agents.correct.ground SCENARIO --out ground.npz [--frames 200] [--method lstsq|torch]
 
 writes ground weights for ``LegendreCorrector(weights="ground.npz")``.
 """
@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> None:
     from starenv.agents.correct.legendre import fit_least_squares
     from starenv.datasets.pairs import pooled_pairs
 
-    parser = argparse.ArgumentParser(prog="python -m starenv.agents.learned.legendre", description=main.__doc__)
+    parser = argparse.ArgumentParser(prog="python -m starenv.agents.correct.ground", description=main.__doc__)
     parser.add_argument("scenario", help="bundled scenario name or TOML path")
     parser.add_argument("--out", required=True, help="output .npz")
     parser.add_argument("--frames", type=int, default=200, help="random-sky frames (default 200)")

@@ -4,7 +4,7 @@ State: the attitude ``A`` (inertial -> body, a scipy ``Rotation``) and the gyro 
 error state ``x = (dtheta, db)`` with ``A_true = exp([dtheta x]) A`` and ``b_true = b + db`` (Lefferts, Markley and
 Shuster 1982; Markley and Crassidis 2014, Sec. 6.2), covariance ``P`` (6, 6).
 
-Propagation, per gyro piece of length ``h`` (the sample intervals of :class:`~starenv.agents.predict.
+Propagation, per gyro piece of length ``h`` (the sample intervals of :class:`~starenv.agents.predict.gyro.
 QuaternionPredictor`, coning term included) with the bias-corrected rate ``w = dtheta / h - b``:
 ``A <- exp(-[w h x]) A``; ``P <- Phi P Phi^T + Q`` with ``Phi = I + F h``, ``F = [[-[w x], I], [0, 0]]`` and the
 discrete noise of angle random walk ``sigma_v`` and bias random walk ``sigma_u``:
@@ -56,7 +56,7 @@ from scipy.stats import chi2
 
 from starenv import checks
 from starenv.agents.base import Prediction, StarMeasurements, StepInput
-from starenv.agents.predict import QuaternionPredictor
+from starenv.agents.predict.gyro import QuaternionPredictor
 from starenv.sim.conventions import ARCSEC, DEG
 from starenv.sim.gyro import GM_PEAK_ADEV_PER_SIGMA, IEEE_FLICKER_FLOOR
 from starenv.sim.optics import Camera

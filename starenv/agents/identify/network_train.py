@@ -4,7 +4,8 @@
                   [--device cpu|cuda] [--set key=value ...] [--rot90] [--max-minutes M] [--resume] [--init RUN]
 
 * Deterministic on CPU: ``torch.manual_seed(seed)``, ``torch.use_deterministic_algorithms(True)``, data read in
-  this process in an order that depends only on (seed, epoch) (:class:`~starenv.agents.learned.data.ShardSampler`);
+  this process in an order that depends only on (seed, epoch)
+  (:class:`~starenv.agents.identify.network_data.ShardSampler`);
   the same command gives bit-identical weights.  ``--rot90`` turns each image by a multiple of 90 deg about its
   centre, drawn from (seed, epoch, batch): a roll of the sensor, which leaves the boresight star's label unchanged
   (exact for a square sensor whose principal point is the image centre).
@@ -14,7 +15,7 @@
 * ``RUN/weights.pt`` holds the state dict only (``torch.save``; load with ``torch.load(..., weights_only=True)``)
   and ``RUN/manifest.json`` the model config, the class list (HIP numbers, label order), the dataset's identity
   (name, spec digest, project version), the git commit, the command and the metrics per epoch.
-* ``--set key=value`` sets a :class:`~starenv.agents.learned.seed002.Seed002Config` field (``depth=4``,
+* ``--set key=value`` sets a :class:`~starenv.agents.identify.network_model.MainStarConfig` field (``depth=4``,
   ``widths=[8,16,16,32,32,64]``); ``n_classes`` comes from the dataset.
 * ``--init RUN`` starts from another run's weights (same config and classes; a fresh optimiser and schedule): the
   paper's two stages, pre-training on the clean set and then training on the full one, are two runs.
@@ -37,8 +38,8 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from starenv.agents.learned.data import ShardDataset, ShardSampler
-from starenv.agents.learned.seed002 import Seed002Config, Seed002Net
+from starenv.agents.identify.network_data import ShardDataset, ShardSampler
+from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
 from starenv.files import atomic_file
 
 
@@ -56,9 +57,9 @@ def _git_commit() -> str | None:
         return None
 
 
-def parse_config(pairs: list[str], n_classes: int) -> Seed002Config:
+def parse_config(pairs: list[str], n_classes: int) -> MainStarConfig:
     """A config from ``key=value`` pairs (values in JSON) over the defaults, with the dataset's class count."""
-    names = {f.name for f in fields(Seed002Config)}
+    names = {f.name for f in fields(MainStarConfig)}
     values: dict = {}
     for pair in pairs:
         key, sep, raw = pair.partition("=")
@@ -70,7 +71,7 @@ def parse_config(pairs: list[str], n_classes: int) -> Seed002Config:
         except json.JSONDecodeError as exc:
             raise ValueError(f"--set {pair!r}: VALUE must be JSON ({exc})") from exc
         values[key] = tuple(value) if isinstance(value, list) else value
-    return Seed002Config(n_classes=n_classes, **values)
+    return MainStarConfig(n_classes=n_classes, **values)
 
 
 def _rot90(images: torch.Tensor, seed: int, epoch: int, batch: int) -> torch.Tensor:
@@ -80,7 +81,7 @@ def _rot90(images: torch.Tensor, seed: int, epoch: int, batch: int) -> torch.Ten
 
 
 @torch.no_grad()
-def evaluate(model: Seed002Net, dataset: ShardDataset, device: str, batch: int = 256) -> dict:
+def evaluate(model: MainStarNet, dataset: ShardDataset, device: str, batch: int = 256) -> dict:
     """Top-1 and top-5 accuracy and mean cross-entropy of ``model`` on every sample of ``dataset``."""
     model.eval()
     order = ShardSampler(dataset, 0, shuffle=False).order()
@@ -98,7 +99,7 @@ def evaluate(model: Seed002Net, dataset: ShardDataset, device: str, batch: int =
     return {"top1": correct1 / n, "top5": correct5 / n, "loss": loss / n, "samples": n}
 
 
-def _initial_weights(run: str | Path, model: Seed002Net, classes, device: str) -> dict:
+def _initial_weights(run: str | Path, model: MainStarNet, classes, device: str) -> dict:
     """Load ``run``/weights.pt into ``model`` (its manifest's classes must be ``classes``); the manifest's record of
     it (path and SHA-256)."""
     run = Path(run)
@@ -143,7 +144,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
     config = parse_config(config_pairs or [], len(classes))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    model = Seed002Net(config).to(device)
+    model = MainStarNet(config).to(device)
     start = None if init is None else _initial_weights(init, model, classes, device)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     sampler = ShardSampler(dataset, seed)
@@ -208,7 +209,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
     checkpoint()
     _atomic_save(model.state_dict(), out / "weights.pt")
     manifest = {
-        "model": "starenv.agents.learned.seed002:Seed002Net",
+        "model": "starenv.agents.identify.network_model:MainStarNet",
         "config": config.to_dict(),
         "classes_hip": [int(h) for h in classes],
         "camera": _camera(spec),
@@ -257,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate of the one-cycle schedule (Adam)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu or cuda")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a Seed002Config field")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a MainStarConfig field")
     p.add_argument("--rot90", action="store_true", help="augment with rolls by multiples of 90 deg")
     p.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much training")
     p.add_argument("--checkpoint-every", type=int, default=100, help="batches between checkpoints")

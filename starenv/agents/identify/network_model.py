@@ -1,7 +1,7 @@
 """Seed 002's end-to-end identifier network (Han et al. 2021, Sec. 3): a raw smeared star image in, the index of
 the navigation star on the boresight (the "main star") out.
 
-Architecture (paper, Figs. 4-6 and Eqs. 6-11), every size a field of :class:`Seed002Config`:
+Architecture (paper, Figs. 4-6 and Eqs. 6-11), every size a field of :class:`MainStarConfig`:
 
 * preprocessing: the raw frame (DN) is area-resized to ``input_size`` (paper: 1024 -> 256), its median (the
   background) subtracted and the result compressed as ``asinh(x / scale_dn)``; the paper's "normalised with a mean
@@ -30,7 +30,7 @@ from torch.nn import functional as F
 
 
 @dataclass(frozen=True)
-class Seed002Config:
+class MainStarConfig:
     """Sizes of the network; the defaults are the paper's where it gives them (``mlp_dim`` and ``widths`` except the
     last are not given; the paper's widths are in its Fig. 6 only)."""
 
@@ -71,7 +71,7 @@ class Seed002Config:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> Seed002Config:
+    def from_dict(cls, d: dict) -> MainStarConfig:
         return cls(**{**d, "widths": tuple(d["widths"])})
 
 
@@ -124,10 +124,10 @@ class EncoderBlock(nn.Module):
         return z + self.mlp(self.ln2(z))
 
 
-class Seed002Net(nn.Module):
+class MainStarNet(nn.Module):
     """Raw frames (B, H, W) or (B, 1, H, W) in DN -> class logits (B, n_classes)."""
 
-    def __init__(self, config: Seed002Config):
+    def __init__(self, config: MainStarConfig):
         super().__init__()
         self.config = c = config
         self.stem = nn.Sequential(nn.Conv2d(1, c.stem_width, 3, 1, 1, bias=False), nn.BatchNorm2d(c.stem_width),
@@ -169,8 +169,8 @@ class Seed002Net(nn.Module):
         return self.head(self.norm(z[:, 0]))
 
 
-def parameter_count(c: Seed002Config) -> int:
-    """Trainable parameters of :class:`Seed002Net` for config ``c``, in closed form."""
+def parameter_count(c: MainStarConfig) -> int:
+    """Trainable parameters of :class:`MainStarNet` for config ``c``, in closed form."""
     bn = 2  # weight and bias per channel (running statistics are buffers)
     n = 9 * c.stem_width + bn * c.stem_width
     c_in = c.stem_width

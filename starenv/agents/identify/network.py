@@ -30,22 +30,22 @@ from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import StarMeasurements
 from starenv.agents.identify.geometry import body_vectors, with_ids
+from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
 from starenv.agents.identify.verify import verify
-from starenv.agents.learned.seed002 import Seed002Config, Seed002Net
 from starenv.sim.conventions import pointing, unit_to_radec
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog, load_catalog
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "seed002_orion"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "paper002_orion"
 CLASS_MAG_LIMIT = 8.0  # the navigation stars' directions come from Hipparcos down to this Hp (classes are brighter)
 
 
-def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> tuple[Seed002Net, dict]:
+def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> tuple[MainStarNet, dict]:
     """The network of a trained run folder (``weights.pt`` + ``manifest.json``), in eval mode, and its manifest."""
     folder = Path(folder)
     manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
-    net = Seed002Net(Seed002Config.from_dict(manifest["config"]))
+    net = MainStarNet(MainStarConfig.from_dict(manifest["config"]))
     net.load_state_dict(torch.load(folder / "weights.pt", weights_only=True, map_location=device))
     return net.to(device).eval(), manifest
 
@@ -53,7 +53,7 @@ def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> t
 class NetworkIdentifier:
     """Lost-in-space identification by seed 002's network plus catalogue verification (see the module docstring).
 
-    ``weights``: a run folder of ``starenv train`` (default: the shipped seed002_orion weights); ``top_k``: main-star
+    ``weights``: a run folder of ``starenv train`` (default: the shipped paper002_orion weights); ``top_k``: main-star
     candidates tried; ``rolls``: roll hypotheses per candidate; ``radius_px``: pairing radius (px);
     ``min_matches``: pairs needed; ``max_false``: largest accepted false-match probability (all hypotheses);
     ``threads``: torch's CPU thread count, set for the whole process (one frame at a time: one thread is fastest,

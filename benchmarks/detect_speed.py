@@ -1,6 +1,6 @@
 """Detector speed and accuracy beside SEP (Source Extractor as a C library) on the same 1024 x 1024 frames.
 
-Frames: seed 002's scenario (1024^2, 12 deg field, 92 ms exposure, stars to magnitude 6.5, hot pixels and cosmic
+Frames: paper 002's scenario (1024^2, 12 deg field, 92 ms exposure, stars to magnitude 6.5, hot pixels and cosmic
 rays) turning at 0, 5 and 10 deg/s about [1, 1, 1].  Both detectors run on one core (OpenCV held to one thread; SEP
 is single-threaded), interleaved frame by frame; the time of each is the median over the repeats, and the ratio
 ``CentroidDetector / SEP`` is taken in the same run (the machines are shared and noisy).
@@ -46,7 +46,7 @@ WIDTH = 1024
 
 
 def frames(rate_dps: float, count: int) -> tuple[list, object]:
-    """``count`` consecutive frames (image, truth) of seed 002's head at ``rate_dps`` about [1, 1, 1], and the head."""
+    """``count`` consecutive frames (image, truth) of paper 002's head at ``rate_dps`` about [1, 1, 1], and the head."""
     per_axis = rate_dps / np.sqrt(3.0)
     sc = scenario.load("paper_002", {"motion.rate_dps": [per_axis] * 3})
     sensor = StarSensor(sc)

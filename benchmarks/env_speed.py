@@ -1,4 +1,4 @@
-"""Environment speed: steps/s of the 512 x 512 seed-000 scenario with a do-nothing action on one core, and the
+"""Environment speed: steps/s of the 512 x 512 paper_000 scenario with a do-nothing action on one core, and the
 speed-up of an async vector env with 2 workers over that single env (measured in the same run), observations through
 shared memory (Gymnasium's default), pickled, and through shared memory with each worker prefetching its next frame
 (``prefetch=True``: simulated while the main process handles the last step); starenv's ``SharedMemoryVectorEnv``

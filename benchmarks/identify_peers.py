@@ -4,9 +4,9 @@ identifiers beside cedar-solve 0.5.1 and tetra3rs 0.14.0.
 Goals: lost-in-space per-star ID rate >= cedar-solve's; median lost-in-space latency <= 2x tetra3rs's; tracking
 <= 1 ms for 30 stars.
 
-Sets: random attitudes (uniform on the sky, uniform roll) of one camera (default seed 002's 1024 x 1024 px, f 58.5 mm,
+Sets: random attitudes (uniform on the sky, uniform roll) of one camera (default paper 002's 1024 x 1024 px, f 58.5 mm,
 12 um, 12 deg field; ``--fov 20`` a 20 deg one with the same sensor), the stars of the Hipparcos-2 catalogue down to
-``--mag-limit`` (default 6.5 at 12 deg, as seed 002's scenario, and 5.5 at 20 deg: a median of 22-24 stars a set)
+``--mag-limit`` (default 6.5 at 12 deg, as paper 002's scenario, and 5.5 at 20 deg; the run prints the stars a set)
 at epoch 2025.0, projected by the ideal pinhole; a star within ``BLEND_PX`` of a brighter one is dropped (the sensor
 sees one spot), 0.3 px Gaussian noise (``--noise``) is added to each coordinate, stars off the sensor are dropped,
 the rest are ordered brightest first.  Every method solves the same sets; the peers run in their own virtual environment
@@ -71,7 +71,7 @@ MAG_LIMIT = {12: 6.5, 20: 5.5}
 
 
 def make_camera(fov_deg: int) -> Camera:
-    """Seed 002's head (12 deg) or the same sensor behind a 20 deg lens."""
+    """Paper 002's head (12 deg) or the same sensor behind a 20 deg lens."""
     if fov_deg == 12:
         return Camera.from_focal_length(58.5e-3, 12e-6, 1024, 1024)
     return Camera.from_fov(float(fov_deg), 1024, 1024, 12e-6)

@@ -1,9 +1,9 @@
-"""Classical pipeline accuracy on the seed scenarios.
+"""Classical pipeline accuracy on the paper scenarios.
 
-1. Seed 002's sensor (12 deg, 1024^2, 92 ms) at 0, 2, 5 and 10 deg/s three-axis (the rate split equally over the body
+1. Paper 002's sensor (12 deg, 1024^2, 92 ms) at 0, 2, 5 and 10 deg/s three-axis (the rate split equally over the body
    axes): solved frames and ID rate with the lost-in-space identifier alone vs tracking (gyro-propagated prior,
    lost-in-space fallback).
-2. Seed 000's sensor (512^2 crop, 10 ms, 100 Hz) at 1 deg/s three-axis: attitude error per axis (pitch, yaw about the
+2. Paper 000's sensor (512^2 crop, 10 ms, 100 Hz) at 1 deg/s three-axis: attitude error per axis (pitch, yaw about the
    camera X, Y axes; roll about the boresight), arcsec.
 
     python benchmarks/pipeline_accuracy.py [--frames N]
@@ -41,7 +41,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=30)
     args = parser.parse_args()
 
-    print(f"Seed 002 sensor, {args.frames} frames per cell")
+    print(f"Paper 002 sensor, {args.frames} frames per cell")
     print(f"{'rate deg/s':>10} | {'identifier':>14} | {'solved':>6} | {'ID rate':>7} | {'att. err median':>15} | "
           f"{'identify ms':>11}")
     for rate in (0.0, 2.0, 5.0, 10.0):
@@ -56,7 +56,7 @@ def main() -> None:
                   f"| {err:12.2f} as | {s['latency_identifier_ms']['median']:11.3f}")
 
     _, heads = run("paper_000", {"lost_after_steps": 10**6}, Pipeline(), max(args.frames, 200))
-    print("\nSeed 000 sensor at 1 deg/s three-axis, attitude error per axis (arcsec)")
+    print("\nPaper 000 sensor at 1 deg/s three-axis, attitude error per axis (arcsec)")
     for axis in ("pitch_arcsec", "yaw_arcsec", "roll_arcsec"):
         v = np.array([h[axis] for h in heads])
         print(f"  {axis[:-7]:5s}  median {np.median(v):7.2f}  p95 {np.percentile(v, 95):7.2f}  "

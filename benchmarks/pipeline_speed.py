@@ -1,7 +1,7 @@
 """Whole classical pipeline speed on one core: predict, detect, identify and solve per frame, each stage timed.
 
-Frames: seed 002's scenario (``paper_002``: 1024 x 1024, 12 deg field, 10 Hz) turning at 0, 2 and 5 deg/s (the rate
-split equally over the body axes), and each scenario of ``--others`` (default the other seed papers) at its own motion,
+Frames: paper 002's scenario (``paper_002``: 1024 x 1024, 12 deg field, 10 Hz) turning at 0, 2 and 5 deg/s (the rate
+split equally over the body axes), and each scenario of ``--others`` (default the other papers) at its own motion,
 are rendered first (rendering is not timed); each scenario's own ``[pipeline]`` then runs over them ``--repeats``
 times, reset before each pass (so the first frame of a pass is identified lost in space, the rest tracked).  Times
 come from the pipeline's own per-role clocks (``Pipeline.report.latency_s``): predictor, detector, identifier,
@@ -16,8 +16,8 @@ ratio pipeline / blur follows the machine's speed (shared and noisy machines, tu
 compare between runs.  Each scenario's line gives its frame rate's period beside the pipeline's median and p95 per
 frame ("fits": p95 within the period).
 
-``--profile`` ends with a cProfile of passes of seed 002 at the fastest rate (cumulative time, top ``--top``).
-Run time with the defaults: about 30 s (most of it rendering).
+``--profile`` ends with a cProfile of passes of paper 002 at the fastest rate (cumulative time, top ``--top``).
+Most of a run's time is rendering.
 
     python benchmarks/pipeline_speed.py [--frames N] [--repeats N] [--others paper_000,...] [--profile] [--top N]
 """

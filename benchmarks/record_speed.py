@@ -1,4 +1,4 @@
-"""Recording cost: env steps/s of the 512 x 512 seed-000 scenario with the built-in pipeline, without recording,
+"""Recording cost: env steps/s of the 512 x 512 paper_000 scenario with the built-in pipeline, without recording,
 with MCAP recording (zstd chunks) and with a live Rerun .rrd recording, measured in the same run; then what the MCAP
 recorder's time goes to (encoding the messages, compressing the chunks, writing) and the zstd level / chunk size trade.
 

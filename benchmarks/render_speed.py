@@ -1,5 +1,5 @@
 """Render speed against the RNG floor: one 1024 x 1024 frame, ~40 stars smeared ~30 px, full noise chain; and a
-long-trail frame (seed 002's scenario at 30 deg/s, ~100 stars smeared ~150 px, ~480 instants per star).
+long-trail frame (paper 002's scenario at 30 deg/s, ~100 stars smeared ~150 px, ~480 instants per star).
 
 The floor is drawing one float32 standard normal per pixel with numpy's Generator, measured in the same run (the
 machines are shared and noisy, so only the ratio means anything).  Goal: render + read-out <= 1.5x the floor on the
@@ -43,7 +43,7 @@ def main() -> None:
     parser.add_argument("--slow-repeats", type=int, default=3, help="repeats of the matrix-product-only long trails")
     args = parser.parse_args()
 
-    # Seed 002's optics: 1024^2, f = 58.5 mm, 12 um (12 deg field); 50 ms exposure at 7 deg/s about X and Y.
+    # Paper 002's optics: 1024^2, f = 58.5 mm, 12 um (12 deg field); 50 ms exposure at 7 deg/s about X and Y.
     cam = Camera.from_focal_length(58.5e-3, 12e-6, 1024, 1024, f_number=1.4)
     catalog = load_catalog(mag_limit=6.0)
     exposure = 0.05
@@ -74,7 +74,7 @@ def main() -> None:
     print(f"render + read-out:                    {total * 1e3:8.2f} ms  = {total / floor:.2f} x floor (goal <= 1.5)")
 
 
-    # Seed 002's scenario at 30 deg/s (17.32 deg/s about each body axis), 92 ms exposure, stars to magnitude 6.5.
+    # Paper 002's scenario at 30 deg/s (17.32 deg/s about each body axis), 92 ms exposure, stars to magnitude 6.5.
     long_renderer = StarRenderer(load_catalog(mag_limit=6.5), cam, Photometry(cam.aperture_m), psf_sigma_px=1.0)
     long_traj = Trajectory(ConstantRate(np.full(3, 17.32 * DEG)), pointing(83.8 * DEG, -5.4 * DEG, 0.0))
     long_exposure = 0.092

@@ -7,19 +7,19 @@ restorer once in turn, so load from other processes falls on all alike):
   region-of-interest Richardson-Lucy (``RoiDeblurrer``, 20 iterations) and the trail fit (``TrailFitDeblurrer``)
   against full-frame Richardson-Lucy with the frame centre's kernel (``RichardsonLucyDeblurrer``, 20 iterations).
   Goal: <= 100 ms per frame.
-* ``paper_000`` (512 x 512, 10 ms, 100 Hz) at ``--seed000-rate`` deg/s about X: seed 000's EBPNN-count RL on the
+* ``paper_000`` (512 x 512, 10 ms, 100 Hz) at ``--paper000-rate`` deg/s about X: paper 000's EBPNN-count RL on the
   candidate streaks' patches (``IterationNetDeblurrer(region="streaks")``) against the paper's full-frame form
   (``region="frame"``).  Goal: <= 200 ms per frame.
-* ``paper_001`` (800 x 600, 60 ms, 10 Hz) at ``--seed001-rate`` deg/s about X and Y: seed 001's curvature filter,
+* ``paper_001`` (800 x 600, 60 ms, 10 Hz) at ``--paper001-rate`` deg/s about X and Y: paper 001's curvature filter,
   RL and Eq. 25 stop on the patches (``CurvatureRLDeblurrer(region="streaks")``) against the full frame.  Goal:
   <= 300 ms per frame.
 
 One core: OpenMP, MKL and OpenBLAS held to one thread (set before numpy is imported; a value already in the
 environment wins), OpenCV to one thread, scipy's FFTs run with one worker on frames of this size.  Printed per line:
 median ms per frame, the speed-up over the baseline (baseline time / restorer time), the goal and the RL iterations
-run.  ``--profile NAME`` ends with a cProfile of that restorer (``roi``, ``trail_fit``, ``seed000``, ``seed001``).
+run.  ``--profile NAME`` ends with a cProfile of that restorer (``roi``, ``trail_fit``, ``paper000``, ``paper001``).
 
-    python benchmarks/restore_realtime.py [--repeats 5] [--seed000-rate 40] [--seed001-rate 4] [--profile NAME]
+    python benchmarks/restore_realtime.py [--repeats 5] [--paper000-rate 40] [--paper001-rate 4] [--profile NAME]
 """
 
 from __future__ import annotations
@@ -72,9 +72,9 @@ def timed(agents: dict, step, repeats: int) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--seed000-rate", type=float, default=40.0, help="deg/s about X on paper_000")
-    parser.add_argument("--seed001-rate", type=float, default=4.0, help="deg/s about X and Y on paper_001")
-    parser.add_argument("--profile", choices=("roi", "trail_fit", "seed000", "seed001"))
+    parser.add_argument("--paper000-rate", type=float, default=40.0, help="deg/s about X on paper_000")
+    parser.add_argument("--paper001-rate", type=float, default=4.0, help="deg/s about X and Y on paper_001")
+    parser.add_argument("--profile", choices=("roi", "trail_fit", "paper000", "paper001"))
     args = parser.parse_args()
     cv2.setNumThreads(1)
     per_axis = 10.0 / math.sqrt(3.0)
@@ -82,12 +82,12 @@ def main() -> None:
         ("paper_002 1024^2, 10 deg/s three-axis", first_step("paper_002", [per_axis] * 3), 100.0,
          "full-frame RL, 20 iterations", RichardsonLucyDeblurrer(20),
          {"ROI RL, 20 iterations": RoiDeblurrer(20), "trail fit": TrailFitDeblurrer()}),
-        (f"paper_000 512^2, {args.seed000_rate:g} deg/s about X", first_step("paper_000", [args.seed000_rate, 0, 0]),
-         200.0, "seed 000 full frame", IterationNetDeblurrer(),
-         {"seed 000 streak patches": IterationNetDeblurrer(region="streaks")}),
-        (f"paper_001 800 x 600, {args.seed001_rate:g} deg/s about X and Y",
-         first_step("paper_001", [args.seed001_rate, args.seed001_rate, 0]), 300.0, "seed 001 full frame",
-         CurvatureRLDeblurrer(), {"seed 001 streak patches": CurvatureRLDeblurrer(region="streaks")}),
+        (f"paper_000 512^2, {args.paper000_rate:g} deg/s about X", first_step("paper_000", [args.paper000_rate, 0, 0]),
+         200.0, "paper 000 full frame", IterationNetDeblurrer(),
+         {"paper 000 streak patches": IterationNetDeblurrer(region="streaks")}),
+        (f"paper_001 800 x 600, {args.paper001_rate:g} deg/s about X and Y",
+         first_step("paper_001", [args.paper001_rate, args.paper001_rate, 0]), 300.0, "paper 001 full frame",
+         CurvatureRLDeblurrer(), {"paper 001 streak patches": CurvatureRLDeblurrer(region="streaks")}),
     ]
     print(f"one core, median of {args.repeats}; speed-up = baseline time / restorer time")
     for title, step, goal_ms, base_name, baseline, agents in cases:
@@ -103,7 +103,7 @@ def main() -> None:
                   f"{agent.last_info.get('candidates', 0)}")
     if args.profile:
         which = {"roi": (0, "ROI RL, 20 iterations"), "trail_fit": (0, "trail fit"),
-                 "seed000": (1, "seed 000 streak patches"), "seed001": (2, "seed 001 streak patches")}
+                 "paper000": (1, "paper 000 streak patches"), "paper001": (2, "paper 001 streak patches")}
         case, name = which[args.profile]
         step, agent = cases[case][1], cases[case][5][name]
         profiler = cProfile.Profile()

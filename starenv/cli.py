@@ -1,6 +1,7 @@
 """Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``,
-``starenv bench BENCH``, ``starenv view FILE``, ``starenv export FILE``,
-``starenv recover FILE.mcap.partial``."""
+``starenv bench BENCH``, ``starenv view FILE``, ``starenv export FILE``, ``starenv recover FILE.mcap.partial``,
+``starenv dataset SPEC`` and ``starenv train`` (torch, imported only when a command builds a learned agent or
+trains one)."""
 
 from __future__ import annotations
 
@@ -297,7 +298,7 @@ def cmd_dataset(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["train"]:  # its own parser, in the only module that imports torch
+    if argv[:1] == ["train"]:  # its own parser, in a module that imports torch (as the learned agents' modules do)
         from starenv.agents.identify.network_train import main as train_main
 
         try:
@@ -373,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="build on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_dataset)
-    sub.add_parser("train", help="train seed 002's network on a dataset (options: starenv train --help)")
+    sub.add_parser("train", help="train paper 002's network on a dataset (options: starenv train --help)")
     args = parser.parse_args(argv)
     try:
         return args.fn(args)

@@ -1,8 +1,9 @@
 """One config engine for the project's TOML files (scenarios, bench files, dataset specs): typed reads of a table
 that refuse unknown keys, dotted-path overrides, and a TOML writer.
 
-Every error is one ``ConfigError`` (or the subclass a file kind names, e.g. ``ScenarioError``) that says
-``file: dotted.key: expected <form>, got <value>``.  Files are data: nothing here imports or calls what a file names.
+Every error is one ``ConfigError`` (or the subclass a file kind names: ``ScenarioError``, ``BenchError``,
+``DatasetError``) that says ``file: dotted.key: expected <form>, got <value>``.  Files are data: nothing here imports
+or calls what a file names.
 """
 
 from __future__ import annotations
@@ -102,16 +103,18 @@ class Table:
             self.fail(key, expected, v)
         return v
 
-    def vector(self, key, n: int | None, default=REQUIRED) -> tuple[float, ...] | None:
-        """A list of ``n`` finite numbers (any length when ``n`` is None)."""
+    def vector(self, key, n: int | None, default=REQUIRED, low=-math.inf, high=math.inf) -> tuple[float, ...] | None:
+        """A list of ``n`` finite numbers (any length when ``n`` is None), each in [``low``, ``high``]."""
         expected = f"a list of {n} numbers" if n else "a non-empty list of numbers"
+        if low > -math.inf or high < math.inf:
+            expected += f" in [{low:g}, {high:g}]"
         v = self.raw(key, default, expected)
         if v is None:
             return None
         if (
             not isinstance(v, list | tuple)
             or (len(v) != n if n else not v)
-            or not all(is_number(x) for x in v)
+            or not all(is_number(x) and low <= x <= high for x in v)
         ):
             self.fail(key, expected, v)
         return tuple(float(x) for x in v)
@@ -146,7 +149,7 @@ class Table:
             raise self.error(f"{self.source}: {self.where(extra[0])}: unknown key (allowed here: {allowed})")
 
     def build(self, what: str, fn, *args, **kwargs):
-        """Call a model constructor, turning its ValueError into a ScenarioError located in this table."""
+        """Call a model constructor, turning its ValueError into this table's error, located in this table."""
         try:
             return fn(*args, **kwargs)
         except ConfigError:

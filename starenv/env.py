@@ -37,9 +37,8 @@ Prefetch.  ``prefetch=True`` simulates the next frame on a background thread as 
 returns, while the caller works on the frame it was given; ``step`` then only scores the action and waits for that
 frame.  The frames, gyro samples and scores are the same, bit for bit, as without it (the next frame never depends
 on the action).  It pays where the caller's work between steps leaves a core free and releases the GIL (numpy,
-OpenCV): on 2 cores the built-in pipeline steps 1.2x faster on ``paper_000`` (``benchmarks/env_speed.py``) and
-1.6x on ``paper_002`` at 5 deg/s, where a frame takes longer to simulate; in an async vector env, whose workers
-already keep the cores busy, it gains nothing.
+OpenCV), the more so the longer a frame takes to simulate (``benchmarks/env_speed.py`` times the built-in pipeline
+with and without it); in an async vector env, whose workers already keep the cores busy, it gains nothing.
 Nothing else may use ``env.sensor`` while a frame is being prefetched.
 
 Bounds.  Every box is finite so that ``observation_space.sample()`` works: times lie in ``[0, T]`` with ``T`` the
@@ -56,19 +55,13 @@ Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
   arrays, one row per star on the frame: ``catalog_id`` (HIP number), ``magnitude`` (Hipparcos Hp), ``xy_mid`` /
   ``xy_centroid`` / ``xy_start`` / ``xy_end`` (n, 2) px (distorted pixel coordinates; mid-exposure position, trail
   centroid, trail ends), ``electrons`` and ``peak_electrons`` (e-; total and brightest pixel), ``detectable`` bool.
-* ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int,
-  ``available`` bool, ``within_threshold`` bool (error < ``availability_threshold_arcsec``), ``attitude`` (empty when
-  unavailable, so that vector envs can merge the infos) ``{"total_arcsec": float, "heads": [{"pitch_arcsec",
-  "yaw_arcsec", "roll_arcsec", "cross_boresight_arcsec"}]}`` (arcsec; the error rotation in each head's camera frame:
-  pitch about +X, yaw about +Y, roll about the boresight +Z, absolute values), ``heads`` a list per head of star scores
-  (None where the action gave nothing to score): ``centroid_error_px_mean`` / ``centroid_error_px_max`` (px, detections
-  matched to true trail centroids within 3 px), ``detection_recall`` / ``detection_precision`` (0-1), ``id_rate``
-  (correct ids / detectable stars, 0-1), ``false_id_rate`` (wrong / claimed, 0-1), ``ids_correct`` / ``ids_wrong``
-  (counts), ``solved`` (>= 3 correct ids and none wrong), ``prediction_error_px_mean`` / ``prediction_error_px_max``
-  (px, predicted vs true mid-exposure positions), ``predictions_scored`` (count), and with a distortion corrector's
-  ``corrected_xy`` in the action ``correction_error_px_mean`` / ``correction_error_x_px`` / ``correction_error_y_px``
-  (px, corrected positions vs where the calibrated camera puts the matched true stars; mean length and mean
-  per-axis size) and ``distortion_px_mean`` (px, the true offset's mean length on those stars).
+* ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int, the
+  step's scores, ``attitude`` (empty when unavailable, so that vector envs can merge the infos) with its ``heads``
+  (one dict per head: the error rotation in that head's camera frame) and ``heads`` (one dict per head: star-level
+  scores, None where the action gave nothing to score; correction scores need the action's ``corrected_xy``).
+  Every score, with its unit, in the table below, composed from ``starenv.metrics`` when this module is imported
+  (``python -m starenv.metrics`` prints it):
+
 """
 
 from __future__ import annotations
@@ -81,14 +74,15 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from scipy.spatial.transform import Rotation
 
+from starenv import metrics
 from starenv import scenario as scenario_mod
 from starenv.agents.base import MAX_STARS, SensorInfo
-from starenv.scoring import attitude_error, calibrated_positions, score_stars
+from starenv.scoring import score_step
 from starenv.sim.sensor import Frame, StarSensor
 
 GYRO_RATE_BOUND = math.radians(3600.0)  # rad/s, the observation space's bound on each gyro rate component
+__doc__ += metrics.info_table() + "\n"
 
 
 class StarSensorEnv(gym.Env):
@@ -213,7 +207,7 @@ class StarSensorEnv(gym.Env):
             raise gym.error.ResetNeeded(f"the episode ended (truncated) after its last frame, step {self._steps}: "
                                         "call reset() before step()")
         parsed = parse_action(action, len(self.scenario.heads))
-        scores = self._score(parsed, self._frame)
+        scores = score_step(parsed, self._frame, self.scenario)
         threshold = self.scenario.availability_threshold_arcsec
         error = scores["attitude"]["total_arcsec"] if scores["available"] else math.inf
         reward = max(0.0, 1.0 - error / threshold) if scores["available"] else 0.0
@@ -306,35 +300,6 @@ class StarSensorEnv(gym.Env):
             "gyro_bias": frame.gyro_bias,
             "dropped": [h.dropped for h in frame.heads],
             "stars": [h.truth.as_dict() for h in frame.heads],
-        }
-
-    def _score(self, action: dict, frame: Frame) -> dict:
-        mountings = [h.camera.mounting for h in self.scenario.heads]
-        available = action["attitude"] is not None
-        att = attitude_error(Rotation.from_quat(action["attitude"]), frame.attitude, mountings) if available else {}
-        heads = []
-        for i, h in enumerate(frame.heads):
-            spec = self.scenario.heads[i]
-            heads.append(
-                vars(
-                    score_stars(
-                        h.truth,
-                        detected_xy=action["detections_xy"][i],
-                        claimed_ids=action["catalog_ids"][i],
-                        predicted_ids=action["predicted_ids"][i],
-                        predicted_xy=action["predicted_xy"][i],
-                        corrected_xy=action["corrected_xy"][i],
-                        calibrated_xy=calibrated_positions(h.truth.xy_centroid, spec.camera, spec.calibrated),
-                    )
-                )
-            )
-        threshold = self.scenario.availability_threshold_arcsec
-        return {
-            "frame": frame.index,
-            "available": available,
-            "within_threshold": bool(available and att["total_arcsec"] < threshold),
-            "attitude": att,
-            "heads": heads,
         }
 
 

@@ -2,10 +2,13 @@
 
 ``run_episode`` is the loop every front end shares (``starenv run``, the benchmark runner, recorders): per step ``k``
 the pipeline turns observation ``k`` into an action, ``env.step`` scores it against frame ``k``'s truth, and each
-observer receives a :class:`StepLog` that holds frame ``k``, its truth, the action and its scores together.  When the
-pipeline has a deblurrer, the flat record also holds the restoration scores of frame ``k`` (``restoration_*`` keys,
-pooled over heads, see :func:`~starenv.scoring.score_restoration`); when it is a filter, its gyro bias error and
-attitude NEES against frame ``k``'s truth (``gyro_bias_error_deg_hr``, ``attitude_nees``).
+observer receives a :class:`StepLog` that holds frame ``k``, its truth, the action and its scores together.  Its flat
+record (:func:`starenv.scoring.flatten`) holds every metric of ``starenv.metrics``: the env's scores pooled over
+heads, the agents' latencies, and, when the pipeline has a deblurrer, the restoration scores of frame ``k``, when it
+is a filter, its bias and NEES against frame ``k``'s truth.  The table below, composed from ``starenv.metrics`` when
+this module is imported (``python -m starenv.metrics`` prints it), lists every record key with its unit, where it
+comes from, its ``summary.csv`` columns and its Rerun panel:
+
 """
 
 from __future__ import annotations
@@ -15,11 +18,13 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from starenv import metrics
 from starenv.agents.base import Policy, StepReport
-from starenv.scoring import flatten, pool_restoration, score_restoration
+from starenv.scoring import flatten, score_filter, score_restoration
 from starenv.sim.render import StarTruth
+
+__doc__ += metrics.record_table() + "\n"
 
 
 @dataclass
@@ -90,10 +95,9 @@ def run_episode(env, pipeline: Policy | None = None, seed: int | None = None, st
             report = pipeline.report if pipeline is not None else StepReport()
             latency = dict(report.latency_s)
             restoration = _restoration_scores(env, report, truth)
-            restoration.update(_filter_scores(report, truth, action))
+            filter_scores = score_filter(report.gyro_bias, report.covariance, action, truth)
             next_obs, _, terminated, truncated, info = env.step(action)
-            record = flatten(info["scores"], latency)
-            record.update(restoration)
+            record = flatten(info["scores"], latency, restoration, filter_scores)
             result.records.append(record)
             log = StepLog(k, obs, truth, action, info["scores"], record, report.source, latency, pipeline,
                           report.gyro_bias, report.covariance)
@@ -114,26 +118,12 @@ def run_episode(env, pipeline: Policy | None = None, seed: int | None = None, st
     return result
 
 
-def _filter_scores(report: StepReport, truth: dict, action: dict | None) -> dict[str, float]:
-    """A filter's estimate against the frame's truth: ``gyro_bias_error_deg_hr`` (norm of the bias error) and
-    ``attitude_nees`` (the attitude error's squared Mahalanobis distance under the filter's covariance; chi-square
-    with 3 degrees of freedom when the filter is consistent).  Empty without a filter."""
-    out = {}
-    if report.gyro_bias is not None:
-        error = np.asarray(report.gyro_bias) - np.asarray(truth["gyro_bias"])
-        out["gyro_bias_error_deg_hr"] = float(np.degrees(np.linalg.norm(error)) * 3600.0)
-    if report.covariance is not None and action is not None and action.get("attitude_valid", 1):
-        error = (Rotation.from_quat(action["attitude"]) * Rotation.from_quat(truth["attitude"]).inv()).as_rotvec()
-        out["attitude_nees"] = float(error @ np.linalg.solve(report.covariance[:3, :3], error))
-    return out
-
-
-def _restoration_scores(env, report: StepReport, truth: dict) -> dict[str, float | None]:
-    """``restoration_*`` record entries of the frame the policy just processed (empty without a restoration): each
-    restored head scored (:func:`~starenv.scoring.score_restoration`) with the policy's own detector against the
-    frame's truth and its still, noise-free reference, pooled over heads."""
+def _restoration_scores(env, report: StepReport, truth: dict) -> list[dict] | None:
+    """Restoration scores of each head the policy restored on the frame it just processed (None without a
+    deblurrer): scored (:func:`~starenv.scoring.score_restoration`) with the policy's own detector against the
+    frame's truth and its still, noise-free reference."""
     if report.detector is None:
-        return {}
+        return None
     base = env.unwrapped
     per_head = []
     for h, restoration in enumerate(report.restorations):
@@ -143,4 +133,4 @@ def _restoration_scores(env, report: StepReport, truth: dict) -> dict[str, float
         clean = base.sensor.still_frame(h, stars)
         per_head.append(score_restoration(stars, restoration.raw, restoration.restored, report.detector,
                                           base.cameras[h], clean, restoration.info))
-    return pool_restoration(per_head)
+    return per_head

@@ -48,7 +48,7 @@ from starenv.config import (
     is_number,
     parse_toml,
 )
-from starenv.sim.conventions import ARCSEC, DEG, pointing
+from starenv.sim.conventions import ARCSEC, DEG, frame_span_s, pointing
 from starenv.sim.drops import DropModel
 from starenv.sim.gyro import GyroSpec
 from starenv.sim.imager import DetectorSpec
@@ -64,7 +64,8 @@ from starenv.sim.motion import (
     Trajectory,
 )
 from starenv.sim.optics import (
-    SEED003_PRESETS,
+    CAMERA_RANGES,
+    DISTORTION_PRESETS,
     BrownConrady,
     Camera,
     Composite,
@@ -97,23 +98,28 @@ MAX_GYRO_PER_STEP = 2**18  # gyro samples one observation holds (the env's fixed
 # Hipparcos-2 stars with Hp <= m for m = -2 .. 14 (counted from the bundled catalogue), to bound stars in view.
 HIP_COUNT_AT_MAG = (0, 1, 2, 15, 46, 165, 480, 1471, 4559, 13943, 37622, 78352, 106261, 114825, 117325, 117915,
                     117953)
-# Stars in one cone <= GALACTIC_EXCESS x the sky's mean + CLUSTER_STARS.  Measured on the bundled catalogue (densest
-# of 3000 random cones, radius 2-20 deg): <= 2.6x the mean at Hp <= 12, <= 3.0x at Hp <= 9; bright cones reach 8x the
-# mean (clusters) but then hold a few tens of stars.
+# Stars in one cone <= GALACTIC_EXCESS x the sky's mean + CLUSTER_STARS: the excess covers the galactic plane, the
+# densest part of the bundled catalogue's sky for cones of 2-20 deg; bright cones exceed it several times over
+# (clusters) but then hold a few tens of stars, which CLUSTER_STARS covers.
 GALACTIC_EXCESS = 3.0
 CLUSTER_STARS = 30
 
 DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre", "radial", "tangential", "thin_prism", "shear",
-                    "perspective", "seed003", "composite")
+                    "perspective", "preset", "composite")
+RENAMED_DISTORTION_KINDS = {"seed003": "preset"}  # former kind -> its name now (its other keys are unchanged)
 
 
 def _distortion(tbl: Table | None) -> Distortion:
-    """A ``[heads.distortion]`` table.  Seed 003's types (``radial`` q1, q2; ``tangential`` p1, p2; ``thin_prism``
+    """A ``[heads.distortion]`` table.  Paper 003's types (``radial`` q1, q2; ``tangential`` p1, p2; ``thin_prism``
     s1, s2; ``shear`` phi_x_deg, phi_y_deg; ``perspective`` h = [h11, h12, h13, h21, h22, h23, h31, h32]) take
-    normalised coefficients (focal plane over half the sensor width); ``seed003`` takes ``preset`` = one of
-    :data:`~starenv.sim.optics.SEED003_PRESETS`; ``composite`` applies its ``[[models]]`` tables in turn."""
+    normalised coefficients (focal plane over half the sensor width); kind ``preset`` names one of
+    :data:`~starenv.sim.optics.DISTORTION_PRESETS` (a type at a typical magnitude) in its key ``preset``;
+    ``composite`` applies its ``[[models]]`` tables in turn."""
     if tbl is None:
         return NoDistortion()
+    old = tbl.data.get("kind")
+    if isinstance(old, str) and old in RENAMED_DISTORTION_KINDS:
+        tbl.fail("kind", f"kind = {RENAMED_DISTORTION_KINDS[old]!r} (the kind {old!r} was renamed)", old)
     kind = tbl.string("kind", choices=DISTORTION_KINDS)
     if kind == "none":
         model = NoDistortion()
@@ -136,8 +142,8 @@ def _distortion(tbl: Table | None) -> Distortion:
         model = tbl.build("distortion", Shear, *phi)
     elif kind == "perspective":
         model = tbl.build("distortion", Perspective, tuple(tbl.vector("h", 8)))
-    elif kind == "seed003":
-        model = SEED003_PRESETS[tbl.string("preset", choices=tuple(SEED003_PRESETS))]
+    elif kind == "preset":
+        model = DISTORTION_PRESETS[tbl.string("preset", choices=tuple(DISTORTION_PRESETS))]
     else:
         models = [_distortion(t) for t in tbl.tables("models")]
         model = tbl.build("distortion", Composite, tuple(models))
@@ -160,15 +166,24 @@ def _mounting(tbl: Table) -> Rotation:
     return Rotation.identity()
 
 
+def _camera_key(tbl: Table, key: str, field_name: str, default: Any = REQUIRED, scale: float = 1.0) -> Any:
+    """The camera key ``key`` of a head table, in its range :data:`~starenv.sim.optics.CAMERA_RANGES` ``[field_name]``
+    (times ``scale``: the key's unit over the field's)."""
+    low, high, low_open = CAMERA_RANGES[field_name]
+    integer = isinstance(low, int)
+    return tbl.number(key, default, low=low if integer else low * scale, high=high if integer else high * scale,
+                      low_open=low_open, integer=integer)
+
+
 def _head(tbl: Table, index: int) -> HeadSpec:
     name = tbl.string("name", f"head{index}")
-    focal_mm = tbl.number("focal_length_mm", low=0.0, high=2000.0, low_open=True)
-    pitch_um = tbl.number("pixel_pitch_um", low=0.0, high=1000.0, low_open=True)
-    width = tbl.number("width", low=8, high=16384, integer=True)
-    height = tbl.number("height", low=8, high=16384, integer=True)
-    f_number = tbl.number("f_number", 1.4, low=0.5, high=32.0)
+    focal_mm = _camera_key(tbl, "focal_length_mm", "focal_length_m", scale=1e3)
+    pitch_um = _camera_key(tbl, "pixel_pitch_um", "pixel_pitch_m", scale=1e6)
+    width = _camera_key(tbl, "width", "width")
+    height = _camera_key(tbl, "height", "height")
+    f_number = _camera_key(tbl, "f_number", "f_number", 1.4)
     principal = tbl.vector("principal_point_px", 2, None)
-    psf_sigma = tbl.number("psf_sigma_px", 1.0, low=0.1, high=20.0)
+    psf_sigma = _camera_key(tbl, "psf_sigma_px", "psf_sigma_px", 1.0)
     transmission = tbl.number("transmission", 0.8, low=0.0, high=1.0, low_open=True)
     qe = tbl.number("quantum_efficiency", 0.6, low=0.0, high=1.0, low_open=True)
     mounting = _mounting(tbl)
@@ -192,7 +207,7 @@ def _calibration(tbl: Table | None, camera: Camera) -> Camera:
     if tbl is None:
         return camera
     changes: dict[str, Any] = {}
-    focal_mm = tbl.number("focal_length_mm", None, low=0.0, high=2000.0, low_open=True)
+    focal_mm = _camera_key(tbl, "focal_length_mm", "focal_length_m", None, scale=1e3)
     if focal_mm is not None:
         changes["fx"] = changes["fy"] = focal_mm * 1e-3 / camera.pixel_pitch_m
     principal = tbl.vector("principal_point_px", 2, None)
@@ -295,8 +310,9 @@ AGENT_ROLES = ("predictor", "deblurrer", "detector", "corrector", "identifier", 
 
 @dataclass(frozen=True)
 class PipelineSpec:
-    """Agents a scenario (or a bench pipeline) asks for: role -> ``"module:Class"`` or None (empty), constructor
-    options per role, the onboard catalogue's magnitude limit; roles not named keep the defaults."""
+    """Agents a scenario (or a bench pipeline, :class:`starenv.bench.spec.NamedPipeline`) asks for: role ->
+    ``"module:Class"`` or None (empty), constructor options per role, the onboard catalogue's magnitude limit; roles
+    not named keep the defaults.  The one pipeline record of scenarios and bench files."""
 
     agents: dict[str, str | None] = field(default_factory=dict)
     options: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -365,7 +381,7 @@ def _check_bounds(source: str, duration: float, frame_rate: float, exposure: flo
     n_mag = HIP_COUNT_AT_MAG[min(len(HIP_COUNT_AT_MAG) - 1, max(0, math.ceil(mag_limit) + 2))]
     for i, h in enumerate(heads):
         cam = h.camera
-        window = exposure + h.detector.line_time_s * (cam.height - 1)
+        window = frame_span_s(exposure, h.detector.line_time_s, cam.height)
         px_per_rad = max(cam.fx, cam.fy) * (1.0 + math.tan(cam.half_diagonal) ** 2)  # the renderer's bound
         trail = rate * window * px_per_rad
         if not trail <= MAX_TRAIL_PX:
@@ -471,10 +487,10 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
     avail = top.number("availability_threshold_arcsec", 60.0, low=0.0, high=1e6, low_open=True)
     heads = [_head(t, i) for i, t in enumerate(top.tables("heads"))]
     for h in heads:
-        readout = h.detector.line_time_s * (h.camera.height - 1)
-        if exposure + readout > 1.0 / frame_rate + 1e-12:
+        span = frame_span_s(exposure, h.detector.line_time_s, h.camera.height)
+        if span > 1.0 / frame_rate + 1e-12:
             raise ScenarioError(
-                f"{source}: exposure_s: expected exposure + rolling-shutter readout ({exposure + readout:g} s) "
+                f"{source}: exposure_s: expected exposure + rolling-shutter readout ({span:g} s) "
                 f"<= the frame period {1.0 / frame_rate:g} s"
             )
     trajectory = _trajectory(top.table("motion", required=True), heads[0].camera)

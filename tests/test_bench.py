@@ -114,7 +114,7 @@ def test_identity_hash_changes_with_every_input_and_only_then(tmp_path):
         assert not digests[0] & other
 
 
-def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
+def test_bundled_bench_covers_every_paper_and_a_30_dps_rate_sweep():
     assert resolve_bench("bundled") == BENCH_DIR / "bundled.toml"
     bench = load_bench("bundled")  # validates every scenario x sweep value and builds every pipeline
     scenarios = {r.scenario for r in bench.runs}
@@ -122,7 +122,7 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
     for i in range(5):
         runs = {r.pipeline.name: r for r in bench.runs if r.scenario == f"paper_00{i}"}
         assert {"tracking", "lost_in_space"} <= set(runs)
-        # "tracking" is the scenario's own pipeline for every seed paper (none names another identifier)
+        # "tracking" is the scenario's own pipeline for every source paper (none names another identifier)
         sc = scenario_mod.load(f"paper_00{i}")
         own = Pipeline.for_scenario(sc).describe()
         assert runs["tracking"].pipeline.build(sc).describe() == own
@@ -133,7 +133,7 @@ def test_bundled_bench_covers_every_seed_paper_and_a_30_dps_rate_sweep():
     rates = sorted({r.sweep_value for r in swept if r.scenario == "paper_002"})
     assert rates[0] == 0 and rates[-1] == 30
     assert all(math.hypot(*r.overrides["motion.rate_dps"]) == pytest.approx(r.sweep_value) for r in swept)
-    # every deblurrer of the seed papers runs, each beside a blurred baseline on the same scenario
+    # every deblurrer of the source papers runs, each beside a blurred baseline on the same scenario
     deblurrers = {r.pipeline.build(scenario_mod.load(r.scenario)).describe()["deblurrer"] for r in bench.runs}
     assert {"starenv.agents.restore:IterationNetDeblurrer",
             "starenv.agents.restore:CurvatureRLDeblurrer", "starenv.agents.restore:WienerDeblurrer",
@@ -342,7 +342,7 @@ def test_mcap_recordings_hold_every_scored_step_of_their_run(tmp_path):
 
 
 def test_killed_bench_resumes_where_it_stopped(tmp_path):
-    text = SMALL.replace("steps = 3", "steps = 30")  # 4 runs of ~1 s each
+    text = SMALL.replace("steps = 3", "steps = 30")  # 4 runs, each long enough to be killed between two of them
     bench_file = _bench(tmp_path, text)
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -424,7 +424,7 @@ def test_restoration_table_lists_only_cases_with_a_deblurrer():
          "restoration_psnr_gain_db_median": 4.25, "restoration_psnr_gain_db_p95": 4.5},
     ]
     text = markdown_tables(rows)
-    section = text[text.index("## Restoration"):text.index("## Latency")]
+    section = text[text.index("## Restoration"):]  # the last table: these rows carry no latency
     body = [line for line in section.splitlines() if line.startswith("| paper_002")]
     assert len(body) == 1 and "| roi_rl |" in body[0]
     assert "| 12 / 14 | 15 / 16.5 | 4.25 / 4.5 |" in body[0]

@@ -1,5 +1,5 @@
 """The one config engine: typed tables naming ``file: dotted.key``, dotted overrides, the TOML writer, and the one
-place pipeline choices merge -- shared by scenarios and bench files."""
+place pipeline choices merge -- shared by scenarios, bench files and dataset specs."""
 
 import tomllib
 
@@ -11,6 +11,7 @@ from starenv import scenario as scenario_mod
 from starenv.agents.pipeline import MOVED, Pipeline, load_agent
 from starenv.bench.spec import BenchError, parse_bench
 from starenv.config import ConfigError, Table, apply_override, dump_toml
+from starenv.datasets import DatasetError, load_spec
 from starenv.scenario import PipelineSpec, ScenarioError
 
 
@@ -28,14 +29,22 @@ def test_table_errors_name_the_file_and_the_dotted_key():
         head.finish()
 
 
-def test_scenarios_and_bench_files_fail_the_same_way():
-    assert issubclass(ScenarioError, ConfigError) and issubclass(BenchError, ConfigError)
+def test_scenarios_bench_files_and_dataset_specs_fail_the_same_way(tmp_path):
+    assert all(issubclass(e, ConfigError) for e in (ScenarioError, BenchError, DatasetError))
     expected = r"paper_000\.toml: frame_rate_hz: expected a number in \(0, 1000\], got -1"
     with pytest.raises(ScenarioError, match=expected):
         scenario_mod.load("paper_000", {"frame_rate_hz": -1})
     bench = '[[runs]]\nscenario = "paper_000"\n[pipelines.x]\nsolver = 3\n'
     with pytest.raises(BenchError, match=r"b\.toml: pipelines\.x\.solver: expected a string, got 3"):
         parse_bench(bench, "b.toml", check=False)
+    spec = tmp_path / "d.toml"
+    spec.write_text('kind = "main_star"\nscenario = "paper_002"\nsamples = 4\n[rates]\nroll_dps = [0.0, 2000.0]\n')
+    with pytest.raises(DatasetError, match=r"d\.toml: rates\.roll_dps: expected a non-empty list of numbers in "
+                                           r"\[-1000, 1000\], got \[0\.0, 2000\.0\]$"):
+        load_spec(spec)
+    spec.write_text('kind = "main_star"\nscenario = "paper_002"\nsamples = 4\n[stars]\ncolour = 1\n')
+    with pytest.raises(DatasetError, match=r"d\.toml: stars\.colour: unknown key"):
+        load_spec(spec)
 
 
 def test_overrides_reach_tables_and_array_items_and_refuse_what_is_not_there():
@@ -76,6 +85,15 @@ def test_pipeline_choices_merge_in_one_place():
     built = Pipeline.for_scenario(sc, {"solver": "starenv.agents.solve:SvdSolver"}, {"identifier": {"gate_px": 4.0}})
     assert built.describe()["predictor"] == "starenv.agents.predict:FirstOrderPredictor"  # paper_000's own
     assert built.describe()["solver"] == "starenv.agents.solve:SvdSolver" and built.agents["identifier"].gate_px == 4.0
+    # a bench file's named pipeline is the same record plus its name, merged the same way
+    bench_text = '[pipelines.svd]\nsolver = "starenv.agents.solve:SvdSolver"\n[[runs]]\nscenario = "paper_000"\n' \
+                 'pipelines = ["svd"]\n'
+    named = parse_bench(bench_text, "b.toml", check=False).runs[0].pipeline
+    assert isinstance(named, PipelineSpec) and named.name == "svd"
+    assert named.as_dict() == {"name": "svd", "agents": {"solver": "starenv.agents.solve:SvdSolver"}, "options": {},
+                               "catalog_mag_limit": None}
+    direct = Pipeline.for_scenario(sc, {"solver": "starenv.agents.solve:SvdSolver"})
+    assert named.build(sc).describe() == direct.describe()
 
 
 @pytest.mark.parametrize("old", sorted(MOVED))

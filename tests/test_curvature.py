@@ -1,4 +1,4 @@
-"""Seed 001's gated curvature filter and its centroid-stopped Richardson-Lucy deblurrer."""
+"""Paper 001's gated curvature filter and its centroid-stopped Richardson-Lucy deblurrer."""
 
 import numpy as np
 import pytest
@@ -206,7 +206,7 @@ def test_deblurrer_restores_a_smeared_star_to_its_mid_exposure_position():
     noisy = np.clip(np.round(img + rng.normal(0.0, 5.0, img.shape)), 0, 4095).astype(np.uint16)
     step = StepInput([noisy], np.ones(1, bool), t_mid, exposure, gyro, [camera])
     agent = CurvatureRLDeblurrer(max_iterations=60)
-    estimate, kernel = agent.restore(noisy, 0, step)  # the seed's restored image, DN above the background
+    estimate, kernel = agent.restore(noisy, 0, step)  # the paper's restored image, DN above the background
     info = agent.last_info
     assert estimate.shape == noisy.shape and estimate.dtype == np.float64
     assert info["stars_watched"] == 2 and info["converged"] and 3 <= info["iterations"] < 60

@@ -21,7 +21,7 @@ from starenv.sim.render import StarRenderer, StarSignal
 from starenv.sim.sensor import StarSensor
 from starenv.sim.sky import StarCatalog
 
-# Seed 000's camera: f = 49 mm, 20 um pixels, here 512 x 512; 10 ms exposure, PSF sigma 0.8 px.
+# Paper 000's camera: f = 49 mm, 20 um pixels, here 512 x 512; 10 ms exposure, PSF sigma 0.8 px.
 CAM = Camera.from_focal_length(49e-3, 20e-6, 512, 512)
 EXPOSURE = 0.01
 SIGMA = 0.8
@@ -199,7 +199,7 @@ def score(stars, truth, camera, inner_px=8.0):
 
 
 def test_real_sky_frames_with_hot_pixels_and_cosmic_rays():
-    """Seed 000's sensor over Orion (Hipparcos stars to mag 6), with ten times its hot pixels and a hundred times its
+    """Paper 000's sensor over Orion (Hipparcos stars to mag 6), with ten times its hot pixels and a hundred times its
     cosmic-ray flux (about five hits per frame)."""
     sc = scenario.load(
         "paper_000",

@@ -1,4 +1,4 @@
-"""Seed 003's distortion types against their closed forms, and the 2-D Legendre model (basis, least squares, torch)."""
+"""Paper 003's distortion types against their closed forms, and the 2-D Legendre model (basis, least squares, torch)."""
 
 import math
 
@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from starenv import scenario as scenario_mod
 from starenv.sim.optics import (
-    SEED003_PRESETS,
+    DISTORTION_PRESETS,
     Composite,
     Intrinsics,
     Perspective,
@@ -20,7 +20,7 @@ from starenv.sim.optics import (
     legendre_basis,
 )
 
-K = Intrinsics(5798.7, 5798.7, 1023.5, 1023.5, 2048, 2048)  # seed 003's head: s = 1024 px
+K = Intrinsics(5798.7, 5798.7, 1023.5, 1023.5, 2048, 2048)  # paper 003's head: s = 1024 px
 S = 1024.0
 coord = st.floats(-1.0, 1.0)
 
@@ -63,14 +63,14 @@ def test_presets_reach_the_papers_magnitudes_at_the_edge():
     edges = np.array([[2047.5, 1023.5], [1023.5, 2047.5], [-0.5, 1023.5], [1023.5, -0.5]])
     grid = np.stack(np.meshgrid(np.linspace(-0.5, 2047.5, 41), np.linspace(-0.5, 2047.5, 41)), -1).reshape(-1, 2)
     for name in ("barrel", "pincushion", "tangential", "thin_prism"):
-        m = SEED003_PRESETS[name]
+        m = DISTORTION_PRESETS[name]
         edge = np.linalg.norm(m.distort(edges, K) - edges, axis=1).max()
         assert 1.9 < edge < 2.6, (name, edge)  # "about 2 pixels" at the edge
     for name in ("shear", "perspective"):
-        m = SEED003_PRESETS[name]
+        m = DISTORTION_PRESETS[name]
         worst = np.linalg.norm(m.distort(grid, K) - grid, axis=1).max()
         assert 2.8 < worst < 3.7, (name, worst)  # "about 3 pixels" at most
-    bar, pin = SEED003_PRESETS["barrel"], SEED003_PRESETS["pincushion"]
+    bar, pin = DISTORTION_PRESETS["barrel"], DISTORTION_PRESETS["pincushion"]
     assert bar.distort(edges[:1], K)[0, 0] < edges[0, 0] < pin.distort(edges[:1], K)[0, 0]  # barrel pulls inwards
 
 
@@ -79,13 +79,16 @@ def test_scenario_kinds_build_the_models():
         return scenario_mod.load("paper_003", {"heads.0.distortion": dist}).heads[0].camera.distortion
 
     assert head0({"kind": "radial", "q1": -1e-3}) == Radial(q1=-1e-3)
-    assert head0({"kind": "seed003", "preset": "thin_prism"}) == SEED003_PRESETS["thin_prism"]
+    assert head0({"kind": "preset", "preset": "thin_prism"}) == DISTORTION_PRESETS["thin_prism"]
     assert head0({"kind": "shear", "phi_x_deg": 0.1}) == Shear(phi_x=math.radians(0.1))
-    comp = head0({"kind": "composite", "models": [{"kind": "tangential", "p1": 1e-4}, {"kind": "seed003",
+    comp = head0({"kind": "composite", "models": [{"kind": "tangential", "p1": 1e-4}, {"kind": "preset",
                                                                                         "preset": "perspective"}]})
-    assert comp == Composite((Tangential(p1=1e-4), SEED003_PRESETS["perspective"]))
+    assert comp == Composite((Tangential(p1=1e-4), DISTORTION_PRESETS["perspective"]))
     with pytest.raises(scenario_mod.ScenarioError, match="heads.0.distortion.preset"):
-        head0({"kind": "seed003", "preset": "fisheye"})
+        head0({"kind": "preset", "preset": "fisheye"})
+    with pytest.raises(scenario_mod.ScenarioError,  # the paper-named former kind names the kind to write now
+                       match=r"paper_003.toml: heads.0.distortion.kind: expected kind = 'preset' .*got 'seed003'"):
+        head0({"kind": "seed003", "preset": "barrel"})
     with pytest.raises(scenario_mod.ScenarioError, match="heads.0.distortion.*h31, h32"):
         head0({"kind": "perspective", "h": [1, 0, 0, 0, 1, 0, 0, 0.9]})
     with pytest.raises(scenario_mod.ScenarioError, match="heads.0.distortion.h"):

@@ -214,7 +214,7 @@ def test_scenario_bounds_on_memory_and_time_name_their_limit(overrides, message)
 
 
 def test_a_run_that_would_not_fit_fails_before_it_allocates():
-    """The issue's case: 1e4 deg/s on a 256 px frame once asked for 9.3 GiB; now the env refuses it at load."""
+    """The issue's case: 1e4 deg/s on a 256 px frame once asked for gigabytes; now the env refuses it at load."""
     tracemalloc.start()
     try:
         with pytest.raises(scenario_mod.ScenarioError, match="star trails of at most 1024 px"):

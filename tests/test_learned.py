@@ -1,4 +1,4 @@
-"""Seed 002's network (shapes, parameter count) and the training harness (toy task, determinism, resume)."""
+"""Paper 002's network (shapes, parameter count) and the training harness (toy task, determinism, resume)."""
 
 import hashlib
 import json

@@ -1,4 +1,4 @@
-"""Seed 000's EBPNN: the SUMFC feature, the optimal-iteration label, the networks, and the shipped weights."""
+"""Paper 000's EBPNN: the SUMFC feature, the optimal-iteration label, the networks, and the shipped weights."""
 
 import numpy as np
 import pytest
@@ -102,12 +102,12 @@ def test_save_and_load_round_trip(tmp_path):
 def test_shipped_weights_fit_their_training_set_and_more_blur_means_more_iterations():
     net = EnsembleNet.load(WEIGHTS)
     assert WEIGHTS.stat().st_size < 20_000
-    # Measured when the weights were made (python -m starenv.agents.restore.iteration.train): mean error 19.3
-    # iterations over labels 1..250 (docs/seed000_restoration.md).  The labels are noisy (one frame each), so the
-    # tolerance is on the mean error: 12 % of the label range (30 iterations).
+    # The fit's error when the weights were made (python -m starenv.agents.restore.iteration.train) is in
+    # docs/paper000_restoration.md.  The labels are noisy (one frame each), so the tolerance is on the mean error: 12 %
+    # of the label range, which weights that were not loaded, or fed an unscaled input, miss by far.
     fitted = np.array([net.predict(v) for v in net.sumfc])
     assert np.mean(np.abs(fitted - net.iterations)) < 0.12 * np.ptp(net.iterations)
-    # Seed 000's Fig. 6 relation, as measured here: smaller SUMFC (longer trails) -> more iterations.
+    # Paper 000's Fig. 6 relation, which the training labels follow: smaller SUMFC (longer trails) -> more iterations.
     lo, hi = np.quantile(net.sumfc, [0.1, 0.9])
     grid = np.exp(np.linspace(np.log(lo), np.log(hi), 9))
     pred = net.global_predict(grid)

@@ -18,7 +18,7 @@ from starenv.sim.optics import (
     legendre_mode_count,
 )
 
-SEED_003_FIELD = LegendreField(
+PAPER_003_FIELD = LegendreField(
     coeffs_x=(0.1, 0.8, -0.3, 0.2, 0.15, -0.1, 0.05, 0.0, 0.02, -0.04),
     coeffs_y=(-0.2, 0.1, 0.7, -0.1, 0.1, 0.2, 0.0, 0.03, -0.02, 0.01),
 )
@@ -26,20 +26,20 @@ MODELS = [
     NoDistortion(),
     BrownConrady(k1=-0.12, k2=0.05, k3=-0.01, p1=1e-3, p2=-5e-4),
     RadialXY(kx=2e-7, ky=-1.5e-7),
-    SEED_003_FIELD,
+    PAPER_003_FIELD,
 ]
 
 
-def seed_000_camera(distortion=None):
+def paper_000_camera(distortion=None):
     distortion = NoDistortion() if distortion is None else distortion
     return Camera.from_focal_length(49e-3, 20e-6, 512, 512, distortion=distortion)
 
 
-def test_fov_of_the_seed_cameras():
-    # Seed 000: 865 px of 20 um behind f = 49 mm span 2 atan(8.65 mm / 49 mm) = 20.02 deg.
+def test_fov_of_the_paper_cameras():
+    # Paper 000: 865 px of 20 um behind f = 49 mm span 2 atan(8.65 mm / 49 mm) = 20.02 deg.
     full = Camera.from_focal_length(49e-3, 20e-6, 865, 865)
     assert math.degrees(full.fov[0]) == pytest.approx(2 * math.degrees(math.atan(8.65 / 49)), abs=1e-9)
-    # Seed 004: 512 px of 8 um behind f = 39.078 mm is a 6.0000 deg field.
+    # Paper 004: 512 px of 8 um behind f = 39.078 mm is a 6.0000 deg field.
     head = Camera.from_focal_length(39.078e-3, 8e-6, 512, 512)
     assert math.degrees(head.fov[0]) == pytest.approx(6.0, abs=1e-4)
     # from_fov inverts it.
@@ -50,7 +50,7 @@ def test_fov_of_the_seed_cameras():
 @settings(max_examples=60, deadline=None)
 @given(u=st.floats(0, 511), v=st.floats(0, 511))
 def test_unproject_then_project_round_trips(model, u, v):
-    cam = seed_000_camera(model)
+    cam = paper_000_camera(model)
     ray = cam.unproject(np.array([[u, v]]))
     assert np.linalg.norm(ray) == pytest.approx(1.0, abs=1e-12)
     xy, front = cam.project(ray)
@@ -62,14 +62,14 @@ def test_unproject_then_project_round_trips(model, u, v):
 @settings(max_examples=60, deadline=None)
 @given(x=st.floats(-0.1, 0.1), y=st.floats(-0.1, 0.1))
 def test_project_then_unproject_round_trips(model, x, y):
-    cam = seed_000_camera(model)
+    cam = paper_000_camera(model)
     ray = np.array([[x, y, 1.0]]) / math.sqrt(x * x + y * y + 1)
     xy, _ = cam.project(ray)
     np.testing.assert_allclose(cam.unproject(xy), ray, atol=1e-11)
 
 
 def test_brown_conrady_matches_opencv():
-    cam = seed_000_camera(BrownConrady(k1=-0.2, k2=0.08, k3=-0.02, p1=2e-3, p2=-1e-3))
+    cam = paper_000_camera(BrownConrady(k1=-0.2, k2=0.08, k3=-0.02, p1=2e-3, p2=-1e-3))
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-0.1, 0.1, (50, 2)), np.ones(50)])
     ours, _ = cam.project(pts)
@@ -79,9 +79,9 @@ def test_brown_conrady_matches_opencv():
     np.testing.assert_allclose(ours, ref.reshape(-1, 2), atol=1e-9)
 
 
-def test_radial_xy_correction_is_seed_000_eq_1():
+def test_radial_xy_correction_is_paper_000_eq_1():
     model = RadialXY(kx=3e-7, ky=-2e-7)
-    cam = seed_000_camera(model)
+    cam = paper_000_camera(model)
     measured = np.array([[10.0, 480.0], [300.0, 20.0]])
     dx, dy = measured[:, 0] - cam.cx, measured[:, 1] - cam.cy
     r2 = dx**2 + dy**2
@@ -90,7 +90,7 @@ def test_radial_xy_correction_is_seed_000_eq_1():
     np.testing.assert_allclose(model.distort(expected, cam.intrinsics), measured, atol=1e-8)
 
 
-def test_legendre_basis_is_orthonormal_and_matches_seed_003_eq_12():
+def test_legendre_basis_is_orthonormal_and_matches_paper_003_eq_12():
     order = 5
     assert legendre_mode_count(order) == 21
     nodes, weights = np.polynomial.legendre.leggauss(12)
@@ -116,7 +116,7 @@ def test_legendre_basis_is_orthonormal_and_matches_seed_003_eq_12():
 
 def test_legendre_field_shifts_by_the_constant_mode():
     # Mode 0 is the constant 1/2: weight w shifts every point by w/2 pixels.
-    cam = seed_000_camera(LegendreField(coeffs_x=(2.0, 0, 0), coeffs_y=(-4.0, 0, 0)))
+    cam = paper_000_camera(LegendreField(coeffs_x=(2.0, 0, 0), coeffs_y=(-4.0, 0, 0)))
     xy = np.array([[3.0, 4.0], [500.0, 12.0]])
     np.testing.assert_allclose(cam.distortion.distort(xy, cam.intrinsics), xy + [1.0, -2.0], atol=1e-12)
 
@@ -125,7 +125,7 @@ def test_pointing_puts_the_target_on_the_boresight_north_up_east_left():
     ra, dec = math.radians(83.8), math.radians(-5.4)
     cam_att = pointing(ra, dec, 0.0)
     np.testing.assert_allclose(cam_att.apply(radec_to_unit(ra, dec)), [0, 0, 1], atol=1e-15)
-    cam = seed_000_camera()
+    cam = paper_000_camera()
     north, _ = cam.project(cam_att.apply(radec_to_unit(ra, dec + 0.01)))
     east, _ = cam.project(cam_att.apply(radec_to_unit(ra + 0.01, dec)))
     assert north[0, 1] < cam.cy and abs(north[0, 0] - cam.cx) < 1e-9
@@ -136,7 +136,7 @@ def test_pointing_puts_the_target_on_the_boresight_north_up_east_left():
     assert north_rolled[0, 0] < cam.cx and abs(north_rolled[0, 1] - cam.cy) < 1e-6
 
 
-def test_seed_004_orthogonal_heads_are_expressible():
+def test_paper_004_orthogonal_heads_are_expressible():
     mounts = [
         np.eye(3),
         np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0.0]]),
@@ -166,7 +166,7 @@ def test_bad_camera_input_names_the_parameter(kwargs, name):
 
 
 def test_behind_the_camera_is_masked():
-    xy, front = seed_000_camera().project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))
+    xy, front = paper_000_camera().project(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]]))
     assert front.tolist() == [False, True]
     assert np.isnan(xy[0]).all()
 
@@ -175,7 +175,7 @@ def test_radial_xy_closed_form_jacobian_matches_central_differences():
     from starenv.sim.optics import _central_jacobian
 
     model = RadialXY(kx=3e-7, ky=-2e-7, center=(250.0, 260.0))
-    k = seed_000_camera(model).intrinsics
+    k = paper_000_camera(model).intrinsics
     pts = np.random.default_rng(3).uniform(0, 511, (20, 2))
     exact = model._undistort_jacobian(pts, k)
     numeric = _central_jacobian(lambda p: model.undistort(p, k), pts)

@@ -71,7 +71,7 @@ def test_scenario_pipeline_table_and_precedence():
         scenario_mod.load("paper_000", {"pipeline.painter": "a:b"})
 
 
-def test_default_pipeline_tracks_seed_000_and_times_every_agent():
+def test_default_pipeline_tracks_paper_000_and_times_every_agent():
     env = StarSensorEnv("paper_000", {"lost_after_steps": 10**6})
     records, sources, latencies = run(env, Pipeline(), 30)
     s = summarize(records)

@@ -46,7 +46,7 @@ def ends_and_mid(cam, gyro, t_mid, exposure, xy_mid, **kw):
     ("scenario", "head", "overrides"),
     [
         ("Paper002", 0, {}),  # 5 deg/s three-axis, no distortion
-        ("Paper000", 0, {"motion.rate_dps": [3.0, -2.0, 4.0]}),  # seed 000's radial distortion
+        ("Paper000", 0, {"motion.rate_dps": [3.0, -2.0, 4.0]}),  # paper 000's radial distortion
         ("Paper004", 1, {"motion.rate_dps": [2.0, -1.0, 3.0]}),  # a head mounted at 90 deg to the body
     ],
 )
@@ -202,7 +202,7 @@ def test_bad_input_names_the_field():
 
 
 def test_linear_blur_kernel_is_the_uniform_line_psf():
-    # Seed 000's Eqs. 15/21: light spread evenly along the trail; rasterised, its variance along the trail is that of
+    # Paper 000's Eqs. 15/21: light spread evenly along the trail; rasterised, its variance along the trail is that of
     # m evenly spaced points over the length L plus the pixel-integrated Gaussian's sigma^2 + 1/12.
     cam_like = type("Cam", (), {"cx": 511.5, "cy": 511.5})()
     blur = boresight_blur(np.array([[811.5, 511.5]]), math.radians(20.0), 0.1, cam_like)  # vertical ~10.5 px chord

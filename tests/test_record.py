@@ -275,10 +275,11 @@ def test_view_builds_the_review_recording(run, tmp_path, monkeypatch, capsys):
         assert rows[f"/head{h}/image"] == sum(int(log.obs["frame_valid"][h]) for log in logs)
         for layer in ("truth", "detections", "predictions"):
             assert rows[f"/head{h}/image/{layer}"] == STEPS
-    for key, stage in (("attitude_error_arcsec", "attitude"), ("roll_error_arcsec", "attitude"),
-                       ("centroid_error_px_mean", "detection"), ("id_rate", "identification"),
-                       ("prediction_error_px_mean", "prediction"), ("latency_pipeline_ms", "latency")):
-        assert rows[f"/metrics/{stage}/{key}"] == sum(log.record.get(key) is not None for log in logs), key
+    for key, group in (("attitude_error_arcsec", "attitude"), ("roll_error_arcsec", "attitude"),
+                       ("head1_pitch_error_arcsec", "per_head"), ("centroid_error_px_mean", "px"),
+                       ("id_rate", "share"), ("fixed", "share"), ("ids_correct", "count"),
+                       ("prediction_error_px_mean", "px"), ("latency_pipeline_ms", "latency")):
+        assert rows[f"/metrics/{group}/{key}"] == sum(log.record.get(key) is not None for log in logs), key
     n_logs = sum(int((~log.obs["frame_valid"].astype(bool)).sum()) + (log.source != "solved") for log in logs)
     assert rows["/log"] == n_logs
     import rerun as rr
@@ -317,9 +318,10 @@ def test_live_rerun_recorder_and_mcap_review_log_the_same_data(run, tmp_path):
 
 
 def test_unknown_metrics_are_kept():
+    typed = dict(messages.layout())
     scores = {"frame": 7, "available": True, "within_threshold": False,
-              "attitude": {"total_arcsec": 1.5, "heads": [dict.fromkeys(messages.HEAD_ATTITUDE_FIELDS, 0.25)]},
-              "heads": [{**dict.fromkeys(messages.HEAD_FIELDS), "ids_correct": 4, "ids_wrong": 0, "solved": True,
+              "attitude": {"total_arcsec": 1.5, "heads": [dict.fromkeys(dict(typed["head_attitude"]), 0.25)]},
+              "heads": [{**dict.fromkeys(dict(typed["head"])), "ids_correct": 4, "ids_wrong": 0, "solved": True,
                          "predictions_scored": 0, "restoration_psnr_gain_db": 3.5}]}
     record = {"attitude_error_arcsec": 1.5, "restoration_stars_after": 12.0, "id_rate": None}
     msg = messages.classes()["StepScores"].FromString(
@@ -381,7 +383,7 @@ def test_killed_run_leaves_a_readable_partial_file_and_the_old_recording_intact(
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     partial = Path(str(path) + ".partial")
     deadline = time.monotonic() + 120
-    try:  # wait for a few 1 MiB chunks (~0.3 MiB each, compressed) to reach the file
+    try:  # wait for a few 1 MiB chunks (less once compressed) to reach the file
         while not (partial.exists() and partial.stat().st_size > 1_500_000):
             assert proc.poll() is None, proc.stderr.read().decode()
             assert time.monotonic() < deadline, "the recording did not grow"

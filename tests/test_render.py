@@ -1,4 +1,4 @@
-"""Renderer against closed forms: seed 000's smear lengths (Eqs. 11, 18), arc geometry, signal conservation."""
+"""Renderer against closed forms: paper 000's smear lengths (Eqs. 11, 18), arc geometry, signal conservation."""
 
 import math
 
@@ -15,7 +15,7 @@ from starenv.sim.photometry import Photometry
 from starenv.sim.render import PSF_RADIUS_SIGMA, StarRenderer
 from starenv.sim.sky import StarCatalog
 
-# Seed 000's camera: f = 49 mm, 20 um pixels (2450 px focal length), here a 512 x 512 sensor; 10 ms exposure.
+# Paper 000's camera: f = 49 mm, 20 um pixels (2450 px focal length), here a 512 x 512 sensor; 10 ms exposure.
 CAM = Camera.from_focal_length(49e-3, 20e-6, 512, 512)
 EXPOSURE = 0.01
 SIGMA = 0.8
@@ -56,7 +56,7 @@ def test_static_star_on_the_boresight_lands_on_the_principal_point():
     ("axis", "alpha_deg"),
     [(0, 0.0), (0, 4.0), (1, 0.0), (1, -4.0), (0, 5.0)],
 )
-def test_cross_boresight_smear_matches_seed_000_eq_11(axis, alpha_deg):
+def test_cross_boresight_smear_matches_paper_000_eq_11(axis, alpha_deg):
     """Rotation about camera X moves stars along rows (v); about Y along columns (u); L = f (tan^2 a + 1) da / d."""
     rate_dps = 70.0  # 0.7 deg over 10 ms: about 30 px on the boresight
     f_over_d = CAM.fx
@@ -85,7 +85,7 @@ def test_cross_boresight_smear_matches_seed_000_eq_11(axis, alpha_deg):
     assert across == pytest.approx(SIGMA**2 + 1 / 12, rel=0.01)
 
 
-def test_boresight_roll_draws_an_arc_matching_seed_000_eq_18():
+def test_boresight_roll_draws_an_arc_matching_paper_000_eq_18():
     """About Z a star at radius r sweeps an arc; Eq. 18's chord is |w_z| dt r (to first order)."""
     r = 200.0
     renderer, a0 = one_star_renderer((CAM.cx + r, CAM.cy))
@@ -237,8 +237,9 @@ def test_trail_image_matches_a_direct_per_instant_sum(monkeypatch, rate_dps, pat
     assert trail < 15 if path == "_patches_matmul" else trail > 140  # the lengths the docstring gives
     image = frame.signal.image()
     np.testing.assert_allclose(image, expected, rtol=1e-6, atol=2e-8 * total)
-    # Per star the tabulated fractions' sum is smooth in the phase, so its interpolation error is ~1e-14 (measured);
-    # the peak pixel is float64, so only the ~1e-8 tabulation error is left.
+    # Per star the tabulated fractions' sum is 1 less the light beyond the band (7e-6), so its curvature in the phase
+    # is of that order and its linear interpolation error (step^2 / 8 times the curvature, step 1 / BAND_TABLE_STEPS)
+    # is ~1e-13, far inside 1e-10; the peak pixel is float64, so only the ~1e-8 tabulation error is left.
     assert frame.truth.electrons[0] == pytest.approx(expected.sum(), rel=1e-10)
     assert frame.truth.peak_electrons[0] == pytest.approx(expected.max(), rel=1e-7)
     # Only pixels above MIN_ELECTRONS are listed, and those are all of the direct sum's pixels above it.

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from starenv.scenario import SCENARIO_DIR, Scenario, ScenarioError, bundled_names, load
 from starenv.sim.conventions import DEG, angle_between, pointing, unit_to_radec
 from starenv.sim.motion import ConstantRate, LeoNadir, Sequence, Superposed, TorqueFree
-from starenv.sim.optics import LegendreField, NoDistortion, RadialXY
+from starenv.sim.optics import Camera, LegendreField, NoDistortion, RadialXY
 
 BUNDLED = bundled_names()
 PAPERS = [f"paper_{i:03d}" for i in range(5)]
@@ -62,7 +62,7 @@ def bundled_file(name: str) -> str:
 
 
 def test_all_papers_and_stress_cases_are_bundled():
-    # One scenario per seed paper plus the stress cases: a renamed or lost file fails here.
+    # One scenario per source paper plus the stress cases: a renamed or lost file fails here.
     assert set(PAPERS + ["stress_drops", "stress_stray_light", "stress_tumble"]) <= set(BUNDLED)
     assert BUNDLED == sorted(BUNDLED)
 
@@ -286,6 +286,22 @@ def test_invalid_value_is_one_located_error(case):
     with pytest.raises(ScenarioError, match=pattern):
         load(name, overrides)
 
+
+
+@pytest.mark.parametrize(("key", "value", "field", "field_value", "bound"), [
+    ("heads.0.width", 16385, "width", 16385, "[8, 16384]"),
+    ("heads.0.pixel_pitch_um", 1000.5, "pixel_pitch_m", 1000.5e-6, "(0, 1000]"),  # (0, 1e-3] m
+    ("heads.0.focal_length_mm", 2000.5, "focal_length_m", 2.0005, "(0, 2000]"),  # (0, 2] m
+    ("heads.0.f_number", 32.5, "f_number", 32.5, "[0.5, 32]"),
+    ("heads.0.psf_sigma_px", 0.05, "psf_sigma_px", 0.05, "[0.1, 20]"),
+])
+def test_a_scenario_refuses_a_camera_field_where_the_camera_does(key, value, field, field_value, bound):
+    # One range per camera field: the scenario names its key and unit, the model its own, at the same bound.
+    with pytest.raises(ScenarioError, match=re.escape(f"{key}: expected ") + r"an? \w+ in " + re.escape(bound)):
+        load("paper_000", {key: value})
+    args = {"focal_length_m": 0.049, "pixel_pitch_m": 20e-6, "width": 512, "height": 512, "psf_sigma_px": 1.0}
+    with pytest.raises(ValueError, match=f"^{field} must be"):
+        Camera.from_focal_length(**{**args, field: field_value})
 
 @pytest.mark.parametrize(
     ("cut", "key", "expected"),

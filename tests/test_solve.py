@@ -131,8 +131,8 @@ def plain_gibbs_quest(body: np.ndarray, inertial: np.ndarray) -> Rotation:
 def test_plain_gibbs_quest_fails_at_180_deg(axis):
     """Without sequential rotations QUEST loses the attitude at 180 deg; QuestSolver does not.
 
-    The Gibbs vector's error grows like eps |y| = 2 eps / offset: measured 1e-13 rad at 1e-2 rad from 180 deg, 1e-9
-    at 1e-6, 1e-8 at 1e-7, 1e-7 at 1e-8 and 1 to 2.4 rad exactly at 180 deg.
+    The Gibbs vector's error grows like eps |y| = 2 eps / offset: ~4e-14 rad at 1e-2 rad from 180 deg, inside the
+    1e-11 bound, while exactly at 180 deg |y| is infinite and what is left is rounding luck, up to radians.
     """
     rng = np.random.default_rng(7)
     for offset, plain_error_range in ((1e-2, (0.0, 1e-11)), (0.0, (0.1, np.pi))):
@@ -211,7 +211,7 @@ def test_two_vectors_closed_form_and_triad_limit(solver):
 def test_quest_falls_back_when_lambda_max_is_unresolved():
     """Three stars, two with weights 1e-10 of the first: lambda_max is within ~1e-10 of the next eigenvalue, below
     what the characteristic polynomial resolves in double precision (rounding moves its root by ~1e-9).  Taking
-    Newton's root there put QUEST up to 2.9 rad off; with the q-method fallback it agrees with the SVD method to the
+    Newton's root there can put QUEST radians off; with the q-method fallback it agrees with the SVD method to the
     problem's own sensitivity (eps / gap ~ 1e-6 rad)."""
     rng = np.random.default_rng(5)
     for _ in range(20):

@@ -1,4 +1,4 @@
-"""Triangle and grid identifiers (seed 002's comparators) and hypothesis verification, on projected catalogue stars."""
+"""Triangle and grid identifiers (paper 002's comparators) and hypothesis verification, on projected catalogue stars."""
 
 import math
 

@@ -1,15 +1,13 @@
 """Aggregating a bench's run files into tables (markdown, CSV), plots (PNG) and ``report.md``.
 
-Cases are (scenario, swept key and value, pipeline); a case pools the steps of all its seeds.  Per case:
-
-* ``availability``: fraction of steps with a valid estimate within the scenario's threshold (``within_threshold``);
-  ``solved``: fraction of steps with >= 3 correct ids and none wrong; ``fixed``: fraction of steps both solved and
-  within the threshold -- the frame's own stars gave the attitude, where availability also counts an attitude a
-  predictor or filter carried through a frame it could not use; ``id_rate``: mean ID rate over steps with
-  detectable stars; ``false_id_rate``: mean over steps with claimed ids;
-* every other metric (errors in arcsec and px, recall, precision, latencies in ms per agent role, and any metric a
-  newer agent adds): median and p95 (linear interpolation) over the steps that have a value.  Attitude errors are
-  over available steps only.
+Cases are (scenario, swept key and value, pipeline); a case pools the steps of all its seeds.  Per case, every
+metric of ``starenv.metrics`` that its steps carry gets the statistics its declaration names, over the steps that
+have a value (attitude errors: over available steps only), one ``summary.csv`` column each
+(``starenv.metrics.column``: ``share`` as the metric's own name, e.g. ``within_threshold`` = availability, ``fixed``;
+``mean``, ``median``, ``p95`` (linear interpolation) as suffixes).  The report's tables show the metrics with a
+``label``: the accuracy table those of ``info["scores"]`` and the flat record, one table per other scope
+(restoration, filter: only cases that carry it) and the latency per agent role, each with a legend.  A key no
+metric declares is an error naming it.
 """
 
 from __future__ import annotations
@@ -22,11 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from starenv.bench.runner import LATENCY_PREFIX, read_run
+from starenv import metrics
+from starenv.bench.runner import read_run
+from starenv.scoring import derive
 
-FRACTIONS = ("within_threshold", "available", "solved", "fixed")
-MEANS = ("id_rate", "false_id_rate")
-SKIP = ("frame", "step")
 ROLE_NAMES = {"pipeline": "whole pipeline"}  # latency_pipeline_ms: one whole policy call
 UNITS = {"_dps": "deg/s", "_deg": "deg", "_arcsec": "arcsec", "_hz": "Hz", "_s": "s", "_px": "px", "_um": "um",
          "_mm": "mm", "_e": "e-", "_rthr": "deg/sqrt(h)"}
@@ -62,7 +59,7 @@ def aggregate(run_files: list[Path]) -> list[dict]:
                ident["pipeline"]["name"])
         case = cases.setdefault(key, {"ident": ident, "runs": 0, "records": []})
         case["runs"] += 1
-        case["records"].extend(dict(r, fixed=_fixed(r)) for r in steps)
+        case["records"].extend(derive(r) for r in steps)
     rows = []
     for (scenario, sweep_key, _, pipeline), case in cases.items():
         sweep = case["ident"]["sweep"] or {}
@@ -71,24 +68,12 @@ def aggregate(run_files: list[Path]) -> list[dict]:
                "pipeline_agents": _choice(case["ident"]["pipeline"]),
                "pipeline_unrestored": _choice(case["ident"]["pipeline"], without="deblurrer")}
         records = case["records"]
-        metrics = sorted({k for r in records for k in r if k not in SKIP})
-        for m in metrics:
-            values = np.array([r[m] for r in records if r.get(m) is not None], dtype=np.float64)
-            if m in FRACTIONS or m in MEANS:
-                row[f"{m}_mean" if m in MEANS else m] = float(values.mean()) if len(values) else None
-            if m not in FRACTIONS:
-                row[f"{m}_median"] = float(np.median(values)) if len(values) else None
-                row[f"{m}_p95"] = float(np.percentile(values, 95)) if len(values) else None
+        for key in metrics.order({k for r in records for k in r if k not in metrics.INDEX_KEYS}):
+            values = np.array([r[key] for r in records if r.get(key) is not None], dtype=np.float64)
+            for stat in metrics.lookup(key).statistics:
+                row[metrics.column(key, stat)] = metrics.STATISTICS[stat].function(values) if len(values) else None
         rows.append(row)
     return rows
-
-
-def _fixed(record: dict) -> float | None:
-    """1.0 when a step's frame was solved and its attitude is within the threshold, 0.0 when not; None for a
-    record that carries neither score."""
-    if record.get("within_threshold") is None or record.get("solved") is None:
-        return None
-    return float(record["within_threshold"] == 1.0 and record["solved"] == 1.0)
 
 
 def _choice(pipeline: dict, without: str | None = None) -> str:
@@ -115,21 +100,14 @@ def _fmt(v) -> str:
     return str(v)
 
 
-ACCURACY = (
-    ("availability", "within_threshold"), ("solved", "solved"), ("fixed", "fixed"), ("ID rate", "id_rate_mean"),
-    ("false ID", "false_id_rate_mean"),
-    ("att. err. median / p95 (arcsec)", ("attitude_error_arcsec_median", "attitude_error_arcsec_p95")),
-    ("cross-bore. median / p95 (arcsec)", ("cross_boresight_error_arcsec_median", "cross_boresight_error_arcsec_p95")),
-    ("roll median / p95 (arcsec)", ("roll_error_arcsec_median", "roll_error_arcsec_p95")),
-    ("centroid median / p95 (px)", ("centroid_error_px_mean_median", "centroid_error_px_mean_p95")),
-    ("prediction median / p95 (px)", ("prediction_error_px_mean_median", "prediction_error_px_mean_p95")),
-    ("distortion left median / p95 (px)", ("correction_error_px_mean_median", "correction_error_px_mean_p95")),
-)
-RESTORATION = (
-    ("centroid blurred (px)", "restoration_centroid_error_blurred_px"),
-    ("centroid restored (px)", "restoration_centroid_error_px"),
-    ("stars blurred", "restoration_stars_before"), ("stars restored", "restoration_stars_after"),
-    ("PSNR gain (dB)", "restoration_psnr_gain_db"), ("iterations", "restoration_iterations"),
+CASE_HEAD = ["scenario", "sweep", "pipeline", "runs", "steps"]
+ACCURACY_SCOPES = ("step", "attitude", "head_attitude", "head", "record")
+# (section heading, scopes, whether every case has a row (else only the cases with a value in those scopes))
+TABLES = (
+    ("Accuracy", ACCURACY_SCOPES, True),
+    ("Restoration (pipelines with a deblurrer)", ("restoration",), False),
+    ("Filter against truth (pipelines with a fusion filter)", ("filter",), False),
+    ("Latency per agent role", ("latency",), True),
 )
 
 
@@ -138,41 +116,57 @@ def _case_cells(r: dict) -> list[str]:
     return [r["scenario"], sweep, r["pipeline"], str(r["runs"]), str(r["steps"])]
 
 
+def _instances(rows: list[dict], metric: metrics.Metric) -> list[tuple[str, dict[str, str]]]:
+    """The record keys of ``metric`` the rows carry statistics of, with the values of its name's placeholders (a
+    name without placeholders: its one key, carried or not)."""
+    if "{" not in metric.name:
+        return [(metric.name, {})]
+    keys = {}
+    for r in rows:
+        for col in r:
+            parsed = metrics.parse_column(col)
+            found = parsed and metrics.find(parsed[0])
+            if found and found[0] is metric:
+                keys[parsed[0]] = found[1]
+    return sorted(keys.items())
+
+
+def _heading(metric: metrics.Metric, params: dict[str, str]) -> str:
+    """A table column's heading: label (placeholders filled in), statistics shown, unit."""
+    names = {k: ROLE_NAMES.get(v, v) if k == "role" else v for k, v in params.items()}
+    text = metric.label.format(**names)
+    if metric.columns_shown != ("share",):
+        text += " " + " / ".join(metric.columns_shown)
+    return text + ("" if metric.unit in metrics.UNITLESS else f" ({metric.unit})")
+
+
+PLACEHOLDER = re.compile(r"\{(\w+)\}")
+
+
+def _legend(shown: list[metrics.Metric]) -> str:
+    """One line per metric of a table: its label (a placeholder as ``<name>``) and meaning."""
+    return "\n".join("- " + PLACEHOLDER.sub(r"<\1>", m.label) + f": {m.description}" for m in dict.fromkeys(shown))
+
+
 def markdown_tables(rows: list[dict]) -> str:
-    """The accuracy table, the restoration table (cases with a deblurrer) and the latency table (median / p95 ms per
-    agent role) as markdown."""
-    head = ["scenario", "sweep", "pipeline", "runs", "steps"]
-    lines = ["| " + " | ".join(head + [name for name, _ in ACCURACY]) + " |",
-             "|" + "---|" * (len(head) + len(ACCURACY))]
-    for r in rows:
-        cells = _case_cells(r)
-        for _, col in ACCURACY:
-            cells.append(" / ".join(_fmt(r.get(c)) for c in col) if isinstance(col, tuple) else _fmt(r.get(col)))
-        lines.append("| " + " | ".join(cells) + " |")
-    roles = sorted({k[len(LATENCY_PREFIX):-len("_ms_median")] for r in rows for k in r
-                    if k.startswith(LATENCY_PREFIX) and k.endswith("_ms_median")})
-    names = [ROLE_NAMES.get(role, role) for role in roles]
-    lat = ["| " + " | ".join(head + names) + " |", "|" + "---|" * (len(head) + len(roles))]
-    for r in rows:
-        cells = _case_cells(r) + [
-            f"{_fmt(r.get(f'latency_{role}_ms_median'))} / {_fmt(r.get(f'latency_{role}_ms_p95'))}" for role in roles
-        ]
-        lat.append("| " + " | ".join(cells) + " |")
-    restoration = [r for r in rows if r.get("restoration_psnr_gain_db_median") is not None
-                   or r.get("restoration_stars_after_median") is not None]
-    rest = ""
-    if restoration:
-        names = [name for name, _ in RESTORATION]
-        table = ["| " + " | ".join(head + names) + " |", "|" + "---|" * (len(head) + len(names))]
-        for r in restoration:
-            cells = _case_cells(r) + [f"{_fmt(r.get(c + '_median'))} / {_fmt(r.get(c + '_p95'))}"
-                                      for _, c in RESTORATION]
-            table.append("| " + " | ".join(cells) + " |")
-        rest = ("\n## Restoration (pipelines with a deblurrer), median / p95\n\n"
-                "Centroid errors are against the true mid-exposure position; stars = detections matched to a true "
-                "star on the blurred and on the restored frame.\n\n" + "\n".join(table) + "\n")
-    return ("## Accuracy\n\n" + "\n".join(lines) + "\n" + rest
-            + "\n## Latency per agent role, median / p95 (ms)\n\n" + "\n".join(lat) + "\n")
+    """The tables of :data:`TABLES`, each with the labelled metrics of its scopes (one column per record key and
+    the statistics it shows) and a legend, as markdown."""
+    out = []
+    for title, scopes, every_case in TABLES:
+        labelled = [m for m in metrics.METRICS if m.scope in scopes and m.label]
+        columns = [(m, key, params) for m in labelled for key, params in _instances(rows, m)]
+        keep = [r for r in rows if every_case or any(
+            r.get(metrics.column(key, s)) is not None for m, key, _ in columns for s in m.statistics)]
+        if not keep or not columns:
+            continue
+        heads = [_heading(m, params) for m, _, params in columns]
+        lines = ["| " + " | ".join(CASE_HEAD + heads) + " |", "|" + "---|" * (len(CASE_HEAD) + len(heads))]
+        for r in keep:
+            cells = [" / ".join(_fmt(r.get(metrics.column(key, s))) for s in m.columns_shown)
+                     for m, key, _ in columns]
+            lines.append("| " + " | ".join(_case_cells(r) + cells) + " |")
+        out.append(f"## {title}\n\n" + "\n".join(lines) + "\n\n" + _legend([m for m, _, _ in columns]) + "\n")
+    return "\n".join(out)
 
 
 DODGE_MARKERS = ("o", "s", "^", "D", "v", "P")
@@ -347,8 +341,9 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
         lat = per.setdefault(header["identity"]["pipeline"]["name"], {})
         for rec in steps:
             for k, v in rec.items():
-                if k.startswith(LATENCY_PREFIX) and v is not None:
-                    lat.setdefault(k[len(LATENCY_PREFIX):-len("_ms")], []).append(v)
+                found = metrics.find(k)
+                if found is not None and found[0].scope == "latency" and v is not None:
+                    lat.setdefault(found[1]["role"], []).append(v)
     made += _plot_distortion(run_files, folder, plt)
     for scenario, per in by_scenario.items():
         roles = sorted({role for lat in per.values() for role in lat})
@@ -433,10 +428,9 @@ def write_report(bench, run_files: list[Path], out: Path) -> Path:
     lines += [
         f"Bench file: `{bench.source}`.  {len(run_files)} runs, {sum(r['steps'] for r in rows)} scored steps.  "
         "Per-step scores: [`runs/`](runs/) (one JSON-lines file per run, its identity in the first line).  "
-        "Tables: [summary.md](summary.md), [summary.csv](summary.csv) (every metric's median and p95).",
+        "Tables: [summary.md](summary.md), [summary.csv](summary.csv) (every statistic of every metric).",
         "",
-        "Availability = fraction of steps with a valid attitude within the scenario's threshold; solved = fraction of "
-        "steps with >= 3 correct ids and none wrong; ID rate = mean over steps of correct ids / detectable stars.  "
+        "Each table's legend defines its columns (every metric, with its unit: `python -m starenv.metrics`).  "
         "Attitude errors are over available steps.  Latencies are wall-clock on the machine that ran the step (the "
         "only values that differ between repeated runs).",
         "",

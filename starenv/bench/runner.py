@@ -29,11 +29,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+from starenv import metrics
 from starenv.bench.spec import MCAP_RECORDER, BenchError, RunSpec
 from starenv.files import atomic_file
 from starenv.parallel import local_executor, ray_executor
-
-LATENCY_PREFIX = "latency_"
 
 
 @dataclass
@@ -140,8 +139,9 @@ def write_run(path: Path, run: RunSpec, result: RunResult) -> None:
 
 
 def comparable(records: Iterable[dict]) -> list[dict]:
-    """Step records without the wall-clock fields (``latency_*``), for bit-for-bit comparison between executors."""
-    return [{k: v for k, v in r.items() if not k.startswith(LATENCY_PREFIX)} for r in records]
+    """Step records without the wall-clock metrics (``starenv.metrics``: the latencies), for bit-for-bit comparison
+    between executors."""
+    return [{k: v for k, v in r.items() if not metrics.is_wall_clock(k)} for r in records]
 
 
 def check_writable(out: Path) -> None:

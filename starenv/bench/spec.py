@@ -69,13 +69,11 @@ class BenchError(ConfigError):
 
 
 @dataclass(frozen=True)
-class PipelineChoice:
-    """A named pipeline: agents (role -> "module:Class" or None) and options replacing the scenario's own."""
+class NamedPipeline(scenario_mod.PipelineSpec):
+    """A bench pipeline: the scenario's pipeline record (agents, options, catalogue limit replacing the scenario's
+    own) plus the name the bench file gives it."""
 
-    name: str
-    agents: dict[str, str | None] = field(default_factory=dict)
-    options: dict[str, dict[str, Any]] = field(default_factory=dict)
-    catalog_mag_limit: float | None = None
+    name: str = field(kw_only=True)
 
     def as_dict(self) -> dict:
         return {"name": self.name, "agents": self.agents, "options": self.options,
@@ -86,11 +84,7 @@ class PipelineChoice:
         protocol; ``trust``: module prefixes outside ``starenv`` agents may come from)."""
         from starenv.agents.pipeline import Pipeline
 
-        return Pipeline.from_spec(scenario.pipeline.replaced_by(self.spec), trust)
-
-    @property
-    def spec(self) -> scenario_mod.PipelineSpec:
-        return scenario_mod.PipelineSpec(self.agents, self.options, self.catalog_mag_limit)
+        return Pipeline.from_spec(scenario.pipeline.replaced_by(self), trust)
 
 
 @dataclass(frozen=True)
@@ -119,7 +113,7 @@ class RunSpec:
     sweep_key: str | None
     sweep_value: Any
     sweep_axis: tuple[float, ...] | None
-    pipeline: PipelineChoice
+    pipeline: NamedPipeline
     seed: int
     steps: int
     record: bool = True  # whether the bench's recorder (if any) records this run; not part of its identity
@@ -210,9 +204,9 @@ def _sweep(tbl: Table) -> Sweep:
     return Sweep(key, tuple(values), axis)
 
 
-def _pipeline_choice(name: str, tbl: Table) -> PipelineChoice:
+def _named_pipeline(name: str, tbl: Table) -> NamedPipeline:
     spec = scenario_mod.parse_pipeline(tbl)
-    return PipelineChoice(name, spec.agents, spec.options, spec.catalog_mag_limit)
+    return NamedPipeline(spec.agents, spec.options, spec.catalog_mag_limit, name=name)
 
 
 def _recorder(value: Any, source: str) -> str | None:
@@ -260,9 +254,9 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
             raise BenchError(f"{source}: pipelines.{pname}: {pname!r} is a built-in preset name; pick another name")
         if not pname.replace("_", "").replace("-", "").isalnum():
             raise BenchError(f"{source}: pipelines.{pname}: expected a name of letters, digits, '_' or '-'")
-        pipelines[pname] = _pipeline_choice(pname, Table(pt.get(pname), f"pipelines.{pname}", source, BenchError))
+        pipelines[pname] = _named_pipeline(pname, Table(pt.get(pname), f"pipelines.{pname}", source, BenchError))
     for pname, agents in PRESETS.items():
-        pipelines[pname] = PipelineChoice(pname, dict(agents))
+        pipelines[pname] = NamedPipeline(dict(agents), name=pname)
     groups = top.get("runs")
     if not isinstance(groups, list) or not groups:
         top.fail("runs", "a non-empty array of tables ([[runs]])", groups)

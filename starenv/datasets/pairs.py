@@ -1,4 +1,4 @@
-"""Measured / reference star-position pairs for learning a distortion corrector (seed 003's data sets), and the
+"""Measured / reference star-position pairs for learning a distortion corrector (paper 003's data sets), and the
 star-coverage rate of the focal plane.
 
 A sample is one frame of head ``head`` of a scenario, reproducible alone from ``(seed, index)``
@@ -8,7 +8,7 @@ attitude at ``t = index / frame_rate_hz`` (the on-orbit sequence).  Each catalog
 seen by the head yields:
 
 * ``distorted``: where the true optics image it (pinhole + the scenario's distortion), px;
-* ``measured``: ``distorted`` plus independent Gaussian centroid noise of ``centroid_noise_px`` per axis (seed 003's
+* ``measured``: ``distorted`` plus independent Gaussian centroid noise of ``centroid_noise_px`` per axis (paper 003's
   Eq. 19 noise ``n_X, n_Y``, whose size the paper does not give);
 * ``reference``: where the *calibrated* camera puts the same direction (the position a perfect corrector returns).
 
@@ -97,11 +97,11 @@ def pooled_pairs(scenario: Scenario, seed: int, frames: int, centroid_noise_px: 
 
 
 def coverage(xy: np.ndarray, width: int, height: int, radius_px: float = 96.0, cell_px: float = 8.0) -> float:
-    """Seed 003's star-coverage rate ``C_star`` (its Eq. 26): the fraction of the focal plane within ``radius_px`` of
+    """Paper 003's star-coverage rate ``C_star`` (its Eq. 26): the fraction of the focal plane within ``radius_px`` of
     a star position ``xy`` (n, 2) px, on a raster of ``cell_px`` cells.  The paper takes the area of the stars'
-    concave outline and gives no parameter for it; the disc radius plays that part (96 px: on ``paper_003``'s orbit
-    one frame then covers ~32 % of the sensor, 50 frames ~72 %, 500 frames all of it; the paper's Table 1 gives
-    42 %, 71 %, 98 %)."""
+    concave outline and gives no parameter for it; the disc radius plays that part (96 px, set so that the coverage
+    over ``paper_003``'s orbit follows the paper's Table 1, which gives 42 %, 71 %, 98 % after 1, 50 and 500 frames;
+    ``benchmarks/paper003_distortion.py`` prints ours beside it)."""
     from scipy.ndimage import distance_transform_edt
 
     checks.positive("radius_px", radius_px, "px")

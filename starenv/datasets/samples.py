@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from starenv.datasets.pairs import attitude_pairs
 from starenv.datasets.smear import sharp_reference
 from starenv.datasets.spec import VARIANTS, DatasetSpec
-from starenv.sim.conventions import DEG, pointing, radec_to_unit, unit_to_radec
+from starenv.sim.conventions import DEG, frame_span_s, pointing, radec_to_unit, unit_to_radec
 from starenv.sim.sensor import StarSensor
 from starenv.sim.sky import StarCatalog, load_catalog
 
@@ -107,8 +107,7 @@ def render(spec: DatasetSpec, params: dict) -> tuple[StarSensor, object]:
     base = spec.load_scenario(params["randomized"])
     head = base.heads[0]
     cam = head.camera
-    readout = head.detector.line_time_s * (cam.height - 1)
-    t_mid = 0.5 * (readout + base.exposure_s)
+    t_mid = 0.5 * frame_span_s(base.exposure_s, head.detector.line_time_s, cam.height)
     att = params["attitude"]
     rate_body = cam.mounting.inv().apply(np.asarray(params["rate_cam_dps"], dtype=np.float64) * DEG)
     motion = _initial_pointing(att, rate_body, t_mid, cam.mounting)

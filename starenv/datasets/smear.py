@@ -1,4 +1,4 @@
-"""Smeared frames with their sharp reference, for learning restoration (seed 000's iteration model and later ones).
+"""Smeared frames with their sharp reference, for learning restoration (paper 000's iteration model and later ones).
 
 A sample is frame 0 of a scenario started from ``seed`` exactly as ``StarSensorEnv.reset(seed=seed)`` starts it
 (the same image and gyro samples), plus the scene over a vanishing exposure centred on the frame's mid-exposure time,

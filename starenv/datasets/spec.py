@@ -1,12 +1,13 @@
 """Dataset specs: a scenario, the randomised overrides each sample draws, the kind of sample and the sizes.
 
-A spec is a TOML file (or dict), validated on load; a bad value raises :class:`DatasetError` naming the file and the
-dotted key.  Layout (every table but the top level is optional)::
+A spec is a TOML file (or dict), validated on load by the project's config engine (:mod:`starenv.config`); a bad
+value raises :class:`DatasetError` (a ``ConfigError``) naming the file and the dotted key.  Layout (every table but
+the top level is optional)::
 
     name = "paper002_orion"
-    kind = "main_star"            # "main_star": raw image + boresight star label (seed 002)
-                                  # "centroids": truth centroids with HIP ids, false stars id -1 (seed 004)
-                                  # "position_pairs": measured / reference star positions (seed 003)
+    kind = "main_star"            # "main_star": raw image + boresight star label (paper 002)
+                                  # "centroids": truth centroids with HIP ids, false stars id -1 (paper 004)
+                                  # "position_pairs": measured / reference star positions (paper 003)
                                   # "smear_pairs": smeared / still patches around each star (restoration)
     scenario = "paper_002"        # bundled name or path (relative paths: from the spec file's folder)
     samples = 16000               # sample indices 0 .. samples-1
@@ -20,13 +21,13 @@ dotted key.  Layout (every table but the top level is optional)::
     "heads.0.detector.read_noise_e" = [5.0, 15.0]
 
     [pointing]
-    mode = "main_star"            # "main_star": head 0's boresight on a navigation star at mid-exposure (seed 002)
+    mode = "main_star"            # "main_star": head 0's boresight on a navigation star at mid-exposure (paper 002)
                                   # "uniform": attitude uniform on the rotation group (roll included)
     mag_limit = 6.0               # navigation stars (the classes): Hp <= mag_limit ...
     center_ra_deg = 83.8          # ... within radius_deg of this direction (radius 180: the whole sky)
     center_dec_deg = -5.4
     radius_deg = 180.0
-    roll_step_deg = 0.0           # 0: roll uniform in [0, 360); > 0: a multiple of the step (seed 002: 30)
+    roll_step_deg = 0.0           # 0: roll uniform in [0, 360); > 0: a multiple of the step (paper 002: 30)
 
     [rates]                       # head 0's camera frame: two-axis (in-plane) magnitude, its direction, roll rate
     two_axis_dps = [0.0, 2.0, 4.0, 6.0, 8.0]    # resultant |(wx, wy)| drawn from this list ...
@@ -35,7 +36,7 @@ dotted key.  Layout (every table but the top level is optional)::
     roll_dps = [0.0, 6.0, -6.0]   # wz drawn from this list
 
     [stars]
-    variants = ["clean", "false", "missing"]    # one drawn per sample (seed 002's three training sets)
+    variants = ["clean", "false", "missing"]    # one drawn per sample (paper 002's three training sets)
     max_changed = 2               # 1 .. max_changed false stars added / field stars removed
     false_mag_range = [3.0, 6.0]  # magnitude of a false star (uniform)
     position_sigma_px = 0.0       # Gaussian shift of every star's direction, px on head 0 (whole trail)
@@ -62,13 +63,14 @@ from pathlib import Path
 from typing import Any
 
 from starenv import scenario as scenario_mod
+from starenv.config import REQUIRED, ConfigError, Table, parse_toml
 
 FORMAT_VERSION = 1
 KINDS = ("main_star", "centroids", "position_pairs", "smear_pairs")
 VARIANTS = ("clean", "false", "missing")
 
 
-class DatasetError(ValueError):
+class DatasetError(ConfigError):
     """A dataset spec that does not describe a valid dataset."""
 
 
@@ -165,81 +167,42 @@ class DatasetSpec:
         return scenario_mod.load(data, {**self.overrides, **(extra or {})})
 
 
-class _Reader:
-    """Typed access to one table of the spec that refuses unknown keys, naming ``source: dotted.key``."""
-
-    def __init__(self, data: Any, path: str, source: str):
-        self.path, self.source = path, source
-        if not isinstance(data, dict):
-            raise DatasetError(f"{source}: {path or '(top level)'}: expected a table, got {data!r}")
-        self.data, self.used = data, set()
-
-    def fail(self, key: str, expected: str, got: Any) -> None:
-        where = f"{self.path}.{key}" if self.path else key
-        found = "it is missing" if got is _MISSING else f"got {got!r}"
-        raise DatasetError(f"{self.source}: {where}: expected {expected}, {found}")
-
-    def get(self, key: str, default: Any) -> Any:
-        self.used.add(key)
-        value = self.data.get(key, default)
-        return value
-
-    def number(self, key: str, default: Any, low: float, high: float, integer: bool = False) -> Any:
-        v = self.get(key, default)
-        kind = "an integer" if integer else "a number"
-        ok = (isinstance(v, int) if integer else isinstance(v, int | float)) and not isinstance(v, bool)
-        if not ok or not math.isfinite(v) or not low <= v <= high:
-            self.fail(key, f"{kind} in [{low:g}, {high:g}]", v)
-        return v
-
-    def string(self, key: str, default: Any, choices: tuple[str, ...] | None = None) -> str:
-        v = self.get(key, default)
-        if not isinstance(v, str) or (choices and v not in choices):
-            self.fail(key, f"one of {', '.join(map(repr, choices))}" if choices else "a string", v)
-        return v
-
-    def numbers(self, key: str, default: Any, low: float, high: float, length: int | None = None) -> Any:
-        v = self.get(key, default)
-        if v is None:
-            return None
-        expected = (f"a list of {length}" if length else "a non-empty list of") + f" numbers in [{low:g}, {high:g}]"
-        ok = isinstance(v, list | tuple) and len(v) > 0 and (length is None or len(v) == length)
-        if not ok or not all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
-                             and low <= x <= high for x in v):
-            self.fail(key, expected, v)
-        return tuple(float(x) for x in v)
-
-    def table(self, key: str) -> _Reader:
-        self.used.add(key)
-        return _Reader(self.data.get(key, {}), f"{self.path}.{key}" if self.path else key, self.source)
-
-    def finish(self) -> None:
-        extra = sorted(set(self.data) - self.used)
-        if extra:
-            where = f"{self.path}.{extra[0]}" if self.path else extra[0]
-            raise DatasetError(f"{self.source}: {where}: unknown key")
+OPTION_TABLES = ("pointing", "rates", "stars", "pairs", "patches")
 
 
-_MISSING = object()
+def _table(parent: Table, key: str) -> Table:
+    """The sub-table ``key`` of ``parent`` (an empty one when absent: every option has a default)."""
+    return parent.table(key) or Table({}, parent.where(key), parent.source, parent.error)
+
+
+def _unset_dropped(data: dict) -> dict:
+    """``data`` without the ``None`` values :meth:`DatasetSpec.to_dict` writes in the option tables for unset options
+    (a spec read back from ``dataset.json``); a ``None`` anywhere else stays, to be refused."""
+    out = dict(data)
+    for key in OPTION_TABLES:
+        if isinstance(out.get(key), dict):
+            out[key] = {k: v for k, v in out[key].items() if v is not None}
+    return out
 
 
 def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec:
     """Load and validate a dataset spec from a TOML file or a dict (as :meth:`DatasetSpec.to_dict` gives)."""
     base = Path.cwd()
     if isinstance(spec, dict):
-        data, source = dict(spec), source or "<dataset>"
+        data, source = _unset_dropped(spec), source or "<dataset>"
     else:
         path = Path(spec)
         source = str(path)
         try:
-            data = tomllib.loads(path.read_text(encoding="utf-8"))
-        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
             raise DatasetError(f"{source}: cannot read a TOML dataset spec: {exc}") from exc
+        data = parse_toml(text, source, DatasetError)
         base = path.resolve().parent
-    top = _Reader(data, "", source)
+    top = Table(data, "", source, DatasetError)
     name = top.string("name", "dataset")
-    kind = top.string("kind", _MISSING, KINDS)
-    scenario = top.string("scenario", _MISSING)
+    kind = top.string("kind", REQUIRED, KINDS)
+    scenario = top.string("scenario")
     scenario_text = top.get("scenario_text", None)
     if scenario_text is None:
         candidate = base / scenario
@@ -250,20 +213,20 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
             top.fail("scenario", f"a bundled scenario name or a .toml file ({exc})", scenario)
     elif not isinstance(scenario_text, str):
         top.fail("scenario_text", "the scenario's TOML text", scenario_text)
-    samples = top.number("samples", _MISSING, 1, 10**9, integer=True)
+    samples = top.number("samples", REQUIRED, 1, 10**9, integer=True)
     shard_size = top.number("shard_size", 1000, 1, 10**6, integer=True)
     seed = top.number("seed", 0, 0, 2**63 - 1, integer=True)
     overrides = top.get("overrides", {})
     if not isinstance(overrides, dict):
         top.fail("overrides", "a table of dotted scenario keys", overrides)
-    rnd = top.table("randomize")
-    randomize = {key: rnd.numbers(key, None, -1e12, 1e12, length=2) for key in sorted(rnd.data)}
+    rnd = _table(top, "randomize")
+    randomize = {key: rnd.vector(key, 2, REQUIRED, -1e12, 1e12) for key in sorted(rnd.data)}
     for key, (low, high) in randomize.items():
         if low > high:
             rnd.fail(key, "[low, high] with low <= high", [low, high])
     rnd.finish()
 
-    pt = top.table("pointing")
+    pt = _table(top, "pointing")
     pointing = PointingSpec(
         mode=pt.string("mode", "main_star" if kind == "main_star" else "uniform", ("main_star", "uniform")),
         mag_limit=pt.number("mag_limit", 6.0, -2.0, 14.0),
@@ -276,9 +239,9 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
     if kind == "main_star" and pointing.mode != "main_star":
         pt.fail("mode", "'main_star' for kind = 'main_star' (the label is the boresight star)", pointing.mode)
 
-    rt = top.table("rates")
-    listed = rt.numbers("two_axis_dps", None, 0.0, 1000.0)
-    ranged = rt.numbers("two_axis_range_dps", None, 0.0, 1000.0, length=2)
+    rt = _table(top, "rates")
+    listed = rt.vector("two_axis_dps", None, None, 0.0, 1000.0)
+    ranged = rt.vector("two_axis_range_dps", 2, None, 0.0, 1000.0)
     if listed is not None and ranged is not None:
         rt.fail("two_axis_range_dps", "either two_axis_dps or two_axis_range_dps, not both", list(ranged))
     if ranged is not None and ranged[0] > ranged[1]:
@@ -287,15 +250,15 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
         two_axis_dps=listed if listed is not None or ranged is not None else (0.0,),
         two_axis_range_dps=ranged,
         directions=rt.number("directions", 8, 0, 3600, integer=True),
-        roll_dps=rt.numbers("roll_dps", [0.0], -1000.0, 1000.0),
+        roll_dps=rt.vector("roll_dps", None, [0.0], -1000.0, 1000.0),
     )
     rt.finish()
 
-    st = top.table("stars")
+    st = _table(top, "stars")
     variants = st.get("variants", ["clean"])
     if not (isinstance(variants, list | tuple) and variants and all(v in VARIANTS for v in variants)):
         st.fail("variants", f"a non-empty list of {', '.join(map(repr, VARIANTS))}", variants)
-    false_range = st.numbers("false_mag_range", [3.0, 6.0], -2.0, 14.0, length=2)
+    false_range = st.vector("false_mag_range", 2, [3.0, 6.0], -2.0, 14.0)
     if false_range[0] > false_range[1]:
         st.fail("false_mag_range", "[low, high] with low <= high", list(false_range))
     stars = StarsSpec(
@@ -306,10 +269,10 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
         magnitude_sigma=st.number("magnitude_sigma", 0.0, 0.0, 10.0),
     )
     st.finish()
-    pr = top.table("pairs")
+    pr = _table(top, "pairs")
     pairs = PairsSpec(centroid_noise_px=pr.number("centroid_noise_px", 0.05, 0.0, 100.0))
     pr.finish()
-    pa = top.table("patches")
+    pa = _table(top, "patches")
     patches = PatchSpec(size_px=pa.number("size_px", 32, 4, 1024, integer=True))
     pa.finish()
     top.finish()

@@ -1,5 +1,5 @@
 """Centroid sets with truth ids: the stars a multi-head sensor sees at an attitude, as an ideal detector with
-Gaussian centroid noise would report them (seed 004's simulation; no image is rendered).
+Gaussian centroid noise would report them (paper 004's simulation; no image is rendered).
 
 Every catalogue star in front of a head that projects onto its sensor is kept, at its (distorted) pixel position plus
 ``N(0, noise_px)`` per axis; its flux is ``10^(-0.4 mag)`` (relative), so brightness ranks follow magnitudes.

@@ -1,4 +1,4 @@
-"""Seed 004's training samples: each navigation star's "three sides" under centroid noise.
+"""Paper 004's training samples: each navigation star's "three sides" under centroid noise.
 
 A star's three sides are the angles (deg) star -> nearest star, star -> second-nearest star and nearest ->
 second-nearest (the paper's d_i, in that order), between stars of one catalogue (the navigation stars).  A noisy sample

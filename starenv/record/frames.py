@@ -7,7 +7,7 @@ the FITS convention for unsigned 16-bit), row 0 of the image is FITS row 1, so s
 camera and the true attitude at mid-exposure: ``CRVAL`` is the boresight's RA/Dec, ``CRPIX`` the principal point
 (+1), and ``CD`` maps pixel offsets through the pinhole ``X/Z = (u - cx)/fx``, ``Y/Z = (v - cy)/fy`` onto the
 tangent plane's east/north axes at the boresight.  No SIP or other distortion terms are written: for a head with
-lens distortion (seed 000's per-axis radial, seed 003's Legendre field, Brown-Conrady) the WCS is the ideal pinhole
+lens distortion (paper 000's per-axis radial, paper 003's Legendre field, Brown-Conrady) the WCS is the ideal pinhole
 and departs from the star images by the distortion (~0 at the principal point, growing outward); a rolling shutter
 likewise shifts rows away from the mid-exposure attitude.  Header keys also give the exposure (``EXPTIME``, s), the
 start of the exposure on the scenario's epoch (``DATE-OBS``, as for MCAP recordings), the frame index, the drop flag

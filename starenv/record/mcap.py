@@ -10,8 +10,8 @@ metadata's ``time_origin_unix_ns``; the ``/scores`` and ``/gyro`` payloads keep 
   dropped frame);
 * ``/head{h}/calibration``: ``foxglove.CameraCalibration``, frame ``head{h}``: the calibrated (sensor-known) pinhole
   intrinsics with the principal point + 0.5 px (Foxglove's pixel origin, below), ``plumb_bob`` coefficients
-  ``[k1, k2, p1, p2, k3]`` for a Brown-Conrady head, no coefficients for other distortion models (seed 000's per-axis
-  radial and seed 003's Legendre field have no Foxglove equivalent: their images are shown undistorted-as-pinhole);
+  ``[k1, k2, p1, p2, k3]`` for a Brown-Conrady head, no coefficients for other distortion models (paper 000's per-axis
+  radial and paper 003's Legendre field have no Foxglove equivalent: their images are shown undistorted-as-pinhole);
 * ``/head{h}/mounting``: ``foxglove.FrameTransform`` parent ``body``, child ``head{h}``: the calibrated mounting
   (camera axes: +Z boresight, +X along columns, +Y along rows, Foxglove's optical-frame convention), i.e. the inverse
   of the body -> camera rotation.  Calibration and mounting are written with every step so that seeking finds them;

@@ -1,10 +1,13 @@
 """starenv's own protobuf messages in recordings, built at run time with ``descriptor_pb2`` (no protoc needed).
 
-``starenv.StepScores``: every score of one step.  Typed fields for the metrics known today (attitude errors per head,
-star-level scores per head) and, so that no metric silently vanishes, the whole flat record (``StepLog.record``) as a
-``map<string, double>`` plus the list of its keys that had no value this step; per-head scores the typed fields do not
-know go to that head's ``extra`` map.  ``starenv.GyroSamples``: the gyro samples delivered with one frame (s, rad/s,
-body frame).  ``starenv.FilterState``: a fusion filter's state at one frame (``starenv.record.step.FilterState``:
+``starenv.StepScores``: every score of one step.  Typed fields for the metrics of ``info["scores"]``, derived from
+``starenv.metrics.METRICS``: the ``step`` scope's in ``StepScores``, the ``attitude`` scope's in ``AttitudeError``,
+the ``head_attitude`` scope's in ``HeadAttitudeError`` (one per head) and the ``head`` scope's in ``HeadScores`` (one
+per head), each numbered in declaration order with the numbers the message's other fields leave free (so a metric
+added after the last of its scope leaves older files readable); and the whole flat record (``StepLog.record``) as a
+``map<string, double>`` plus the list of its keys that had no value this step; per-head scores no metric declares go
+to that head's ``extra`` map.  ``starenv.GyroSamples``: the gyro samples delivered with one frame (s, rad/s, body
+frame).  ``starenv.FilterState``: a fusion filter's state at one frame (``starenv.record.step.FilterState``:
 attitude ``[x, y, z, w]`` ICRS -> body, bias estimate and true bias in deg/h, 1-sigma in arcsec and deg/h, body axes).
 The file is proto2 so that "no value" (Python ``None``) stays distinguishable from 0.
 """
@@ -15,21 +18,14 @@ from functools import cache
 
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
+from starenv import metrics
+
 F = descriptor_pb2.FieldDescriptorProto
 DOUBLE, INT64, UINT32, BOOL, STRING, MESSAGE = (F.TYPE_DOUBLE, F.TYPE_INT64, F.TYPE_UINT32, F.TYPE_BOOL, F.TYPE_STRING,
                                                 F.TYPE_MESSAGE)
 OPTIONAL, REPEATED = F.LABEL_OPTIONAL, F.LABEL_REPEATED
 
-# Typed per-head star scores (``starenv.scoring.StarScores``): name -> protobuf type.
-HEAD_FIELDS = {
-    "centroid_error_px_mean": DOUBLE, "centroid_error_px_max": DOUBLE, "detection_recall": DOUBLE,
-    "detection_precision": DOUBLE, "id_rate": DOUBLE, "false_id_rate": DOUBLE, "ids_correct": INT64,
-    "ids_wrong": INT64, "solved": BOOL, "prediction_error_px_mean": DOUBLE, "prediction_error_px_max": DOUBLE,
-    "predictions_scored": INT64, "correction_error_px_mean": DOUBLE, "correction_error_x_px": DOUBLE,
-    "correction_error_y_px": DOUBLE, "distortion_px_mean": DOUBLE,
-}
-_PY = {DOUBLE: float, INT64: int, BOOL: bool}
-HEAD_ATTITUDE_FIELDS = ("pitch_arcsec", "yaw_arcsec", "roll_arcsec", "cross_boresight_arcsec")
+PROTO_TYPES = {float: DOUBLE, int: INT64, bool: BOOL}  # a metric's dtype -> its field type
 PACKAGE = "starenv"
 # starenv.FilterState's vector fields: name in the message -> attribute of starenv.record.step.FilterState
 FILTER_FIELDS = {"attitude_xyzw": "attitude", "bias_deg_hr": "bias_deg_hr", "bias_true_deg_hr": "bias_true_deg_hr",
@@ -52,28 +48,45 @@ def _map(msg, name: str, number: int, entry: str) -> None:
     f.type_name = f".{PACKAGE}.{msg.name}.{entry}"
 
 
-def _file() -> descriptor_pb2.FileDescriptorProto:
+Layout = tuple[tuple[str, tuple[tuple[str, type], ...]], ...]
+TYPED_SCOPES = ("step", "attitude", "head_attitude", "head")
+
+
+def layout() -> Layout:
+    """The typed score fields, per scope, from the metric schema: ``(scope, ((key, dtype), ...))``."""
+    return tuple((scope, tuple((m.key, m.dtype) for m in metrics.declared(scope))) for scope in TYPED_SCOPES)
+
+
+def _message(fd, name: str, structure: dict, scores: tuple[tuple[str, type], ...]) -> None:
+    """Message ``name``: its ``structure`` fields (name -> (number, adder)) and the typed ``scores``, numbered in
+    order with the numbers ``structure`` leaves free; fields are added by number."""
+    msg = fd.message_type.add(name=name)
+    taken = {number for number, _ in structure.values()}
+    free = (n for n in range(1, 1 << 29) if n not in taken)
+    fields = dict(structure)
+    for key, dtype in scores:
+        fields[key] = (next(free), lambda m, k, n, t=PROTO_TYPES[dtype]: _field(m, k, n, t))
+    for key, (number, add) in sorted(fields.items(), key=lambda item: item[1][0]):
+        add(msg, key, number)
+
+
+def _file(typed: Layout) -> descriptor_pb2.FileDescriptorProto:
+    scores = dict(typed)
     fd = descriptor_pb2.FileDescriptorProto(name="starenv/recording.proto", package=PACKAGE, syntax="proto2")
-    head_att = fd.message_type.add(name="HeadAttitudeError")
-    for i, name in enumerate(HEAD_ATTITUDE_FIELDS, 1):
-        _field(head_att, name, i, DOUBLE)
-    att = fd.message_type.add(name="AttitudeError")
-    _field(att, "total_arcsec", 1, DOUBLE)
-    _field(att, "heads", 2, MESSAGE, REPEATED, "HeadAttitudeError")
-    head = fd.message_type.add(name="HeadScores")
-    for i, (name, ftype) in enumerate(HEAD_FIELDS.items(), 1):
-        _field(head, name, i, ftype)
-    _map(head, "extra", 100, "ExtraEntry")
-    step = fd.message_type.add(name="StepScores")
-    _field(step, "frame", 1, UINT32)
-    _field(step, "time_s", 2, DOUBLE)
-    _field(step, "source", 3, STRING)
-    _field(step, "available", 4, BOOL)
-    _field(step, "within_threshold", 5, BOOL)
-    _field(step, "attitude", 6, MESSAGE, OPTIONAL, "AttitudeError")
-    _field(step, "heads", 7, MESSAGE, REPEATED, "HeadScores")
-    _map(step, "record", 8, "RecordEntry")
-    _field(step, "record_without_value", 9, STRING, REPEATED)
+    _message(fd, "HeadAttitudeError", {}, scores["head_attitude"])
+    _message(fd, "AttitudeError", {
+        "heads": (2, lambda m, k, n: _field(m, k, n, MESSAGE, REPEATED, "HeadAttitudeError")),
+    }, scores["attitude"])
+    _message(fd, "HeadScores", {"extra": (100, lambda m, k, n: _map(m, k, n, "ExtraEntry"))}, scores["head"])
+    _message(fd, "StepScores", {
+        "frame": (1, lambda m, k, n: _field(m, k, n, UINT32)),
+        "time_s": (2, lambda m, k, n: _field(m, k, n, DOUBLE)),
+        "source": (3, lambda m, k, n: _field(m, k, n, STRING)),
+        "attitude": (6, lambda m, k, n: _field(m, k, n, MESSAGE, OPTIONAL, "AttitudeError")),
+        "heads": (7, lambda m, k, n: _field(m, k, n, MESSAGE, REPEATED, "HeadScores")),
+        "record": (8, lambda m, k, n: _map(m, k, n, "RecordEntry")),
+        "record_without_value": (9, lambda m, k, n: _field(m, k, n, STRING, REPEATED)),
+    }, scores["step"])
     gyro = fd.message_type.add(name="GyroSamples")
     _field(gyro, "frame", 1, UINT32)
     for i, name in enumerate(("t_s", "rate_x_rad_s", "rate_y_rad_s", "rate_z_rad_s"), 2):
@@ -88,33 +101,43 @@ def _file() -> descriptor_pb2.FileDescriptorProto:
     return fd
 
 
-@cache
 def classes() -> dict[str, type]:
-    """The message classes by short name (``StepScores``, ``GyroSamples``, ...), built once per process."""
+    """The message classes by short name (``StepScores``, ``GyroSamples``, ...) of the current metric schema."""
+    return _classes(layout())
+
+
+@cache
+def _classes(typed: Layout) -> dict[str, type]:
+    """Built once per process and schema."""
     pool = descriptor_pool.DescriptorPool()
-    pool.Add(_file())
+    pool.Add(_file(typed))
     names = ("HeadAttitudeError", "AttitudeError", "HeadScores", "StepScores", "GyroSamples", "FilterState")
     return {n: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{PACKAGE}.{n}")) for n in names}
 
 
+def _set(msg, typed: tuple[tuple[str, type], ...], values: dict) -> None:
+    """The typed fields of ``msg`` from ``values`` (a None stays unset)."""
+    for key, dtype in typed:
+        if values[key] is not None:
+            setattr(msg, key, dtype(values[key]))
+
+
 def encode_scores(frame: int, time_s: float, source: str, scores: dict, record: dict):
     """``info["scores"]`` and the flat record of one step as a ``StepScores`` message."""
-    c = classes()
-    msg = c["StepScores"](frame=int(frame), time_s=float(time_s), source=source,
-                          available=bool(scores["available"]), within_threshold=bool(scores["within_threshold"]))
+    typed = dict(layout())
+    msg = classes()["StepScores"](frame=int(frame), time_s=float(time_s), source=source)
+    _set(msg, typed["step"], scores)
     att = scores.get("attitude")
     if att:  # empty (or None in older callers) when the step had no estimate
-        msg.attitude.total_arcsec = att["total_arcsec"]
+        _set(msg.attitude, typed["attitude"], att)
         for h in att["heads"]:
-            msg.attitude.heads.add(**{k: h[k] for k in HEAD_ATTITUDE_FIELDS})
+            _set(msg.attitude.heads.add(), typed["head_attitude"], h)
+    head_keys = dict(typed["head"])
     for h in scores["heads"]:
         head = msg.heads.add()
+        _set(head, typed["head"], h)
         for key, value in h.items():
-            if value is None:
-                continue
-            if key in HEAD_FIELDS:
-                setattr(head, key, _PY[HEAD_FIELDS[key]](value))
-            else:
+            if key not in head_keys and value is not None:
                 head.extra[key] = float(value)
     for key, value in record.items():
         if value is None:
@@ -126,16 +149,16 @@ def encode_scores(frame: int, time_s: float, source: str, scores: dict, record: 
 
 def decode_scores(msg) -> tuple[dict, dict]:
     """(scores, record) back from a ``StepScores`` message: the inverse of :func:`encode_scores`."""
+    typed = dict(layout())
     att = {}
     if msg.HasField("attitude"):
-        att = {"total_arcsec": msg.attitude.total_arcsec,
-               "heads": [{k: getattr(h, k) for k in HEAD_ATTITUDE_FIELDS} for h in msg.attitude.heads]}
+        att = {**{k: getattr(msg.attitude, k) for k, _ in typed["attitude"]},
+               "heads": [{k: getattr(h, k) for k, _ in typed["head_attitude"]} for h in msg.attitude.heads]}
     heads = []
     for h in msg.heads:
-        d = {k: getattr(h, k) if h.HasField(k) else None for k in HEAD_FIELDS}
+        d = {k: getattr(h, k) if h.HasField(k) else None for k, _ in typed["head"]}
         d.update(h.extra)
         heads.append(d)
-    scores = {"frame": msg.frame, "available": msg.available, "within_threshold": msg.within_threshold,
-              "attitude": att, "heads": heads}
+    scores = {"frame": msg.frame, **{k: getattr(msg, k) for k, _ in typed["step"]}, "attitude": att, "heads": heads}
     record = {**dict(msg.record), **dict.fromkeys(msg.record_without_value)}
     return scores, record

@@ -6,8 +6,8 @@ Both paths log each step with :func:`log_step`, so they produce the same entitie
   labels), ``head{h}/image/detections`` (red, labelled with the claimed id) and ``head{h}/image/predictions``
   (blue, labelled) as points; Rerun's image coordinates put (0, 0) at the top-left pixel's corner, so points are
   starenv's positions + 0.5 px;
-* ``metrics/{stage}/{metric}``: every metric of the step's flat score record as a scalar series, grouped by stage
-  (attitude, detection, identification, prediction, restoration, latency, other) -- new metrics appear on their own;
+* ``metrics/{group}/{metric}``: every metric of the step's flat score record as a scalar series, in its group's
+  panel (``starenv.metrics.GROUPS``: one unit per panel; ``other`` for a key no metric declares, from an older file);
 * ``log``: dropped frames, steps without a solution and the error that stopped a run, as text log entries;
 * ``attitude/true`` and ``attitude/estimate``: 3-D arrows in ICRS (unit sphere): the body's +X, +Y, +Z axes (red,
   green, blue; the estimate's at 0.9 length and paler, so both stay visible when they coincide) and each head's
@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from starenv import metrics
 from starenv import scenario as scenario_mod
 from starenv.agents.base import AttitudeFilter
 from starenv.record.step import ERROR, INFO, WARNING, FilterState, StepData, from_step_log
@@ -46,10 +47,6 @@ from starenv.record.step import ERROR, INFO, WARNING, FilterState, StepData, fro
 APPLICATION_ID = "starenv"
 PIXEL_ORIGIN = 0.5
 COLORS = {"truth": (50, 230, 50), "detections": (255, 80, 50), "predictions": (50, 180, 255)}
-STAGES = (("attitude", ("available", "within_threshold", "attitude_", "cross_boresight_", "roll_", "pitch_", "yaw_")),
-          ("detection", ("centroid_", "detection_")), ("identification", ("id_rate", "false_id_rate", "solved")),
-          ("correction", ("correction_", "distortion_")), ("prediction", ("prediction_",)),
-          ("restoration", ("restoration_",)), ("latency", ("latency_",)))
 LEVELS = {INFO: "INFO", WARNING: "WARN", ERROR: "ERROR"}
 
 
@@ -59,12 +56,16 @@ def analytics_off() -> None:
     os.environ.setdefault("CI", "1")
 
 
-def stage_of(metric: str) -> str:
-    """The pipeline stage a flat-record metric belongs to (``other`` when its name says none)."""
-    for stage, prefixes in STAGES:
-        if metric.startswith(prefixes):
-            return stage
-    return "other"
+def metric_path(key: str) -> str:
+    """The entity path of a flat-record metric: ``metrics/{group}/{key}``."""
+    return f"metrics/{metrics.group_of(key)}/{key}"
+
+
+def metric_panels(with_filter: bool = False) -> list[tuple[str, str]]:
+    """(origin, title) of the metric panels, one per group of ``starenv.metrics.GROUPS`` (a filter's only
+    ``with_filter``)."""
+    return [(f"metrics/{key}", group.title) for key, group in metrics.GROUPS.items()
+            if with_filter or not group.filter_only]
 
 
 FILTER_VIEWS = {"filter/attitude_error_arcsec": "filter: attitude error vs 3-sigma (arcsec, body axes)",
@@ -78,8 +79,7 @@ def blueprint(n_heads: int, with_filter: bool = False):
     import rerun.blueprint as rrb
 
     frames = rrb.Grid(*[rrb.Spatial2DView(origin=f"head{h}", name=f"head {h}") for h in range(n_heads)])
-    series = [rrb.TimeSeriesView(origin=f"metrics/{stage}", name=stage)
-              for stage in ("attitude", "detection", "identification", "prediction", "restoration", "latency")]
+    series = [rrb.TimeSeriesView(origin=origin, name=title) for origin, title in metric_panels(with_filter)]
     if with_filter:
         series[1:1] = [rrb.TimeSeriesView(origin=origin, name=name) for origin, name in FILTER_VIEWS.items()]
     sky = rrb.Spatial3DView(origin="attitude", name="attitude: true vs estimate (ICRS)")
@@ -148,8 +148,8 @@ def log_step(rec, data: StepData, cameras=None) -> None:
                                                          radii=2.5 if layer == "truth" else 1.5))
     for key in sorted(data.record):
         value = data.record[key]
-        if key != "frame" and value is not None:
-            rec.log(f"metrics/{stage_of(key)}/{key}", rr.Scalars(float(value)))
+        if key not in metrics.INDEX_KEYS and value is not None:
+            rec.log(metric_path(key), rr.Scalars(float(value)))
     for level, text in data.logs:
         rec.log("log", rr.TextLog(text, level=LEVELS.get(level, "INFO")))
     if data.heads and cameras is not None:  # not the closing entry of a run stopped by an error

@@ -8,6 +8,8 @@
 * Camera frame: +Z along the boresight out of the lens, +X along image columns (right), +Y along image rows (down).
   Pixel centres sit at integer coordinates; (0, 0) is the centre of the top-left pixel.
 * SI units and radians inside.  Time in float64 seconds inside, integer nanoseconds in recordings.
+* Exposure: row ``r`` of a frame opening at ``t_start`` integrates over ``[t_start + r * line_time_s, ... +
+  exposure_s]`` (:func:`row_window`): a rolling shutter, a global one with ``line_time_s = 0``.
 """
 
 from __future__ import annotations
@@ -72,3 +74,33 @@ def pointing(ra: float, dec: float, roll: float) -> Rotation:
 def angle_between(a: Rotation, b: Rotation) -> np.ndarray:
     """Angle (rad) of ``a * b^-1``: the attitude error between two rotations."""
     return (a * b.inv()).magnitude()
+
+
+def row_window(t_start, exposure_s: float, line_time_s: float = 0.0, row=0.0) -> tuple:
+    """Exposure window of an image row.
+
+    Parameters
+    ----------
+    t_start : float or ndarray
+        When the frame's first row (row 0, the top) opens its exposure (s).
+    exposure_s : float
+        How long each row integrates (s).
+    line_time_s : float
+        Delay between the openings of consecutive rows (s): a rolling shutter; 0 a global shutter.
+    row : float or ndarray
+        The row (0 .. height - 1, fractional for a position between rows).
+
+    Returns
+    -------
+    opens, closes : float or ndarray
+        The row's window ``[t_start + row * line_time_s, ... + exposure_s]`` (s), broadcast over the arguments.
+        The frame's span, first row opening to last row closing, is :func:`frame_span_s`.
+    """
+    opens = t_start + row * line_time_s
+    return opens, opens + exposure_s
+
+
+def frame_span_s(exposure_s: float, line_time_s: float, height: int) -> float:
+    """Time (s) from the first row's opening to the last row's closing, ``exposure_s + line_time_s * (height - 1)``:
+    :func:`row_window` of row ``height - 1`` of a frame opening at 0."""
+    return row_window(0.0, exposure_s, line_time_s, height - 1)[1]

@@ -115,7 +115,7 @@ class BrownConrady(Distortion):
 
 @dataclass(frozen=True)
 class RadialXY(Distortion):
-    """Seed 000's per-axis second-order radial model (its Eq. 1), in pixels.
+    """Paper 000's per-axis second-order radial model (its Eq. 1), in pixels.
 
     The closed form is the *correction* the paper applies to a measured (distorted) position ``(x_d, y_d)``:
     ``x - x0 = (x_d - x0)(1 + kx r^2)``, ``y - y0 = (y_d - y0)(1 + ky r^2)`` with ``r`` the distance of the measured
@@ -158,14 +158,14 @@ class RadialXY(Distortion):
 
 
 def legendre_mode_count(order: int) -> int:
-    """Number of 2-D Legendre modes of total order <= ``order``: (n + 1)(n + 2)/2 (seed 003, Eq. 13)."""
+    """Number of 2-D Legendre modes of total order <= ``order``: (n + 1)(n + 2)/2 (paper 003, Eq. 13)."""
     return (order + 1) * (order + 2) // 2
 
 
 def legendre_basis(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
     """Normalised 2-D Legendre modes ``b_m(x, y) = L_{l-k}(x) L_k(y)`` on [-1, 1]^2, shape (n, n_modes).
 
-    Mode index ``m = l(l + 1)/2 + k`` for ``0 <= k <= l <= order`` (seed 003, Eqs. 16-17), with
+    Mode index ``m = l(l + 1)/2 + k`` for ``0 <= k <= l <= order`` (paper 003, Eqs. 16-17), with
     ``L_n = P_n sqrt((2n + 1)/2)`` (Eqs. 14-15).
     """
     eye = np.eye(order + 1)
@@ -178,7 +178,7 @@ def legendre_basis(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class LegendreField(Distortion):
-    """Seed 003's 2-D Legendre distortion field (its Eq. 18): ``p_d = p + sum_m w_m b_m(p_n)``.
+    """Paper 003's 2-D Legendre distortion field (its Eq. 18): ``p_d = p + sum_m w_m b_m(p_n)``.
 
     ``p_n`` is the ideal pixel position mapped to [-1, 1]^2 over the sensor (pixel edges -0.5 and W - 0.5 map to -1
     and +1); ``coeffs_x``, ``coeffs_y`` hold one weight per mode in pixels, ordered as :func:`legendre_basis`.
@@ -209,7 +209,7 @@ class LegendreField(Distortion):
 
 
 class FocalPlaneField(Distortion):
-    """Seed 003's distortion types on the focal plane normalised by the paper's rule: ``x = (u - cx)/s``,
+    """Paper 003's distortion types on the focal plane normalised by the paper's rule: ``x = (u - cx)/s``,
     ``y = (v - cy)/s`` with ``s`` = half the sensor width in px (1024 for its 2048 px sensor), so the sensor spans
     about [-1, 1]^2.  A subclass gives the normalised offset ``(dx, dy)`` of an ideal point; the distorted position
     is ``u + s dx, v + s dy`` (true -> measured, the paper's Eq. 3).  Coefficients are dimensionless (normalised)."""
@@ -231,7 +231,7 @@ def _coefficients(owner: object, *names: str) -> None:
 
 @dataclass(frozen=True)
 class Radial(FocalPlaneField):
-    """Radial distortion (seed 003, Eq. 4 with n = 2): ``dx = x (q1 r^2 + q2 r^4)``, ``dy = y (q1 r^2 + q2 r^4)``;
+    """Radial distortion (paper 003, Eq. 4 with n = 2): ``dx = x (q1 r^2 + q2 r^4)``, ``dy = y (q1 r^2 + q2 r^4)``;
     barrel for negative, pincushion for positive coefficients."""
 
     q1: float = 0.0
@@ -248,7 +248,7 @@ class Radial(FocalPlaneField):
 
 @dataclass(frozen=True)
 class Tangential(FocalPlaneField):
-    """Tangential (decentering) distortion (seed 003, Eq. 5): ``dx = p1 (3x^2 + y^2) + 2 p2 x y``,
+    """Tangential (decentering) distortion (paper 003, Eq. 5): ``dx = p1 (3x^2 + y^2) + 2 p2 x y``,
     ``dy = 2 p1 x y + p2 (x^2 + 3y^2)``."""
 
     p1: float = 0.0
@@ -264,7 +264,7 @@ class Tangential(FocalPlaneField):
 
 @dataclass(frozen=True)
 class ThinPrism(FocalPlaneField):
-    """Thin-prism distortion (seed 003, Eq. 6): ``dx = s1 (x^2 + y^2)``, ``dy = s2 (x^2 + y^2)``."""
+    """Thin-prism distortion (paper 003, Eq. 6): ``dx = s1 (x^2 + y^2)``, ``dy = s2 (x^2 + y^2)``."""
 
     s1: float = 0.0
     s2: float = 0.0
@@ -281,7 +281,7 @@ class ThinPrism(FocalPlaneField):
 class Shear(FocalPlaneField):
     """Shear of the image plane: ``x' = x + tan(phi_x) y``, ``y' = y + tan(phi_y) x`` (angles in rad).
 
-    Seed 003's Eq. 7 reads as a diagonal (scaling) matrix in its text, which is no shear; this is the off-diagonal
+    Paper 003's Eq. 7 reads as a diagonal (scaling) matrix in its text, which is no shear; this is the off-diagonal
     form its name and Fig. 2 describe."""
 
     phi_x: float = 0.0
@@ -298,7 +298,7 @@ class Shear(FocalPlaneField):
 
 @dataclass(frozen=True)
 class Perspective(FocalPlaneField):
-    """Perspective (homography) of the normalised image plane (seed 003, Eqs. 8-9):
+    """Perspective (homography) of the normalised image plane (paper 003, Eqs. 8-9):
     ``x' = (h11 x + h12 y + h13)/w``, ``y' = (h21 x + h22 y + h23)/w``, ``w = h31 x + h32 y + 1``; ``h`` holds
     (h11, h12, h13, h21, h22, h23, h31, h32)."""
 
@@ -336,12 +336,12 @@ class Composite(Distortion):
         return out
 
 
-# Seed 003's six types with its Table 3 / Table 4 forms, scaled to the magnitudes its text states (the table values'
+# Paper 003's six types with its Table 3 / Table 4 forms, scaled to the magnitudes its text states (the table values'
 # units are not given and reproduce them in no single unit): about 2 px at the edge of the image for the optical
 # types, about 3 px at most for the image transformations.  Signs: barrel negative, pincushion positive; the ratios
 # p2/p1 ~ 2.0 and s2/s1 ~ 1.3 follow Table 3, phi_y/phi_x ~ 1/45 Table 4, and the homography is Table 4's as given
 # (applied to normalised coordinates, where it peaks at 3.6 px in a corner).
-SEED003_PRESETS: dict[str, FocalPlaneField] = {
+DISTORTION_PRESETS: dict[str, FocalPlaneField] = {
     "barrel": Radial(q1=-1.6e-3, q2=-0.35e-3),
     "pincushion": Radial(q1=1.6e-3, q2=0.35e-3),
     "tangential": Tangential(p1=0.4e-3, p2=0.8e-3),
@@ -349,6 +349,27 @@ SEED003_PRESETS: dict[str, FocalPlaneField] = {
     "shear": Shear(phi_x=math.atan(2.9e-3), phi_y=math.atan(2.9e-3 / 45.7)),
     "perspective": Perspective((0.999, 0.000625, 0.0005, 0.0, 0.999248, 0.0010, 0.0, 0.001250)),
 }
+
+
+# The camera fields' valid ranges (low, high, whether low itself is excluded; integers where the bounds are), in the
+# units of their names: written once, checked by Camera, the renderer and scenario files (in the files' units).
+CAMERA_RANGES: dict[str, tuple[float, float, bool]] = {
+    "width": (8, 16384, False),
+    "height": (8, 16384, False),
+    "pixel_pitch_m": (0.0, 1e-3, True),
+    "focal_length_m": (0.0, 2.0, True),
+    "aperture_m": (0.0, 1.0, True),
+    "f_number": (0.5, 32.0, False),
+    "psf_sigma_px": (0.1, 20.0, False),
+}
+
+
+def check_camera_field(name: str, value, unit: str = "") -> float:
+    """``value`` checked against :data:`CAMERA_RANGES` ``[name]``."""
+    low, high, low_open = CAMERA_RANGES[name]
+    if isinstance(low, int):
+        return checks.integer(name, value, low, int(high))
+    return checks.in_range(name, value, low, high, low_open=low_open, unit=unit)
 
 
 @dataclass(frozen=True)
@@ -373,15 +394,15 @@ class Camera:
     psf_sigma_px: float = 1.0
 
     def __post_init__(self):
-        checks.integer("width", self.width, 8, 16384)
-        checks.integer("height", self.height, 8, 16384)
+        check_camera_field("width", self.width)
+        check_camera_field("height", self.height)
         checks.positive("fx", self.fx, "px")
         checks.positive("fy", self.fy, "px")
         checks.in_range("cx", self.cx, -0.5, self.width - 0.5, unit="px")
         checks.in_range("cy", self.cy, -0.5, self.height - 0.5, unit="px")
-        checks.in_range("pixel_pitch_m", self.pixel_pitch_m, 0.0, 1e-3, low_open=True, unit="m")
-        checks.in_range("aperture_m", self.aperture_m, 0.0, 1.0, low_open=True, unit="m")
-        checks.in_range("psf_sigma_px", self.psf_sigma_px, 0.1, 20.0, unit="px")
+        check_camera_field("pixel_pitch_m", self.pixel_pitch_m, "m")
+        check_camera_field("aperture_m", self.aperture_m, "m")
+        check_camera_field("psf_sigma_px", self.psf_sigma_px, "px")
         if not isinstance(self.mounting, Rotation) or not self.mounting.single:
             raise ValueError("mounting must be a single scipy Rotation (body -> camera)")
         checks.finite("mounting", self.mounting.as_quat(), shape=(4,))
@@ -402,9 +423,9 @@ class Camera:
         **kwargs,
     ) -> Camera:
         """A head from physical focal length and pixel pitch (m), principal point at the sensor centre."""
-        f = checks.positive("focal_length_m", focal_length_m, "m")
-        pitch = checks.positive("pixel_pitch_m", pixel_pitch_m, "m")
-        n = checks.in_range("f_number", f_number, 0.5, 32.0)
+        f = check_camera_field("focal_length_m", focal_length_m, "m")
+        pitch = check_camera_field("pixel_pitch_m", pixel_pitch_m, "m")
+        n = check_camera_field("f_number", f_number)
         fpx = f / pitch
         kwargs.setdefault("cx", (width - 1) / 2.0)
         kwargs.setdefault("cy", (height - 1) / 2.0)
@@ -422,8 +443,8 @@ class Camera:
     ) -> Camera:
         """A head whose full horizontal field of view (edge to edge of the sensor) is ``fov_deg`` degrees."""
         fov = checks.in_range("fov_deg", fov_deg, 0.0, 180.0, low_open=True, high_open=True, unit="deg")
-        checks.integer("width", width, 8, 16384)
-        checks.positive("pixel_pitch_m", pixel_pitch_m, "m")
+        check_camera_field("width", width)
+        check_camera_field("pixel_pitch_m", pixel_pitch_m, "m")
         fpx = (width / 2.0) / math.tan(math.radians(fov) / 2.0)
         return cls.from_focal_length(fpx * pixel_pitch_m, pixel_pitch_m, width, height, f_number, **kwargs)
 

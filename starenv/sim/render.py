@@ -25,7 +25,8 @@ import numpy as np
 from scipy.special import erf
 
 from starenv import checks
-from starenv.sim.optics import Camera
+from starenv.sim.conventions import frame_span_s, row_window
+from starenv.sim.optics import Camera, check_camera_field
 from starenv.sim.photometry import Photometry
 from starenv.sim.sky import StarCatalog
 
@@ -34,8 +35,9 @@ MIN_ELECTRONS = 1e-9  # expected e- below which a pixel's signal is left out
 DETECTABLE_SNR = 5.0  # peak-pixel signal-to-noise at which a star counts as detectable in the scores
 BAND_TABLE_STEPS = 4096  # sub-pixel phases at which the PSF's pixel fractions are tabulated
 # A batch's patches are scattered instant by instant when the window area exceeds this many times n_band^2: numpy's
-# batched matmul costs ~0.2 ns per (instant, window pixel) and np.bincount ~10 ns per (instant, band pixel) on a 2-core
-# x86 VM (crossover measured between 26 and 76; benchmarks/render_speed.py times both paths).
+# batched matmul costs far less per (instant, window pixel) than np.bincount per (instant, band pixel), so the matmul
+# wins until the window is many band areas wide (benchmarks/render_speed.py times both paths; the ratio is set
+# inside the crossover range it finds).
 SCATTER_AREA_RATIO = 40
 SCATTER_CHUNK = 1 << 21  # (instant, band pixel) terms scattered per np.bincount call, bounding its memory (~40 MB)
 BATCH_BYTES = 1 << 28  # stars are rendered in batches whose estimated working memory stays under this (256 MiB)
@@ -110,13 +112,13 @@ class StarRenderer:
         self.catalog = catalog
         self.camera = camera
         self.photometry = photometry
-        self.psf_sigma_px = checks.in_range("psf_sigma_px", psf_sigma_px, 0.1, 20.0, unit="px")
+        self.psf_sigma_px = check_camera_field("psf_sigma_px", psf_sigma_px, "px")
         self.line_time_s = checks.in_range("line_time_s", line_time_s, 0.0, 1e-3, unit="s")
         self.electrons_per_s = photometry.star_electrons_per_s(catalog.magnitude)
         self.max_step_px = min(self.psf_sigma_px, 0.5)
         corner = camera.half_diagonal
         # Image speed bound per unit body rate: a rotation by d(theta) moves an image point by at most
-        # f (1 + tan^2(alpha)) d(theta) (seed 000, Eq. 11) at field angle alpha <= the corner angle.
+        # f (1 + tan^2(alpha)) d(theta) (paper 000, Eq. 11) at field angle alpha <= the corner angle.
         self._px_per_rad = max(camera.fx, camera.fy) * (1.0 + math.tan(corner) ** 2)
 
     def _instants(self, trajectory, t0: float, t1: float) -> int:
@@ -129,13 +131,12 @@ class StarRenderer:
         t_start = float(checks.finite("t_start", t_start, shape=()))
         exposure = checks.in_range("exposure_s", exposure_s, 0.0, 10.0, low_open=True, unit="s")
         cam = self.camera
-        readout = self.line_time_s * (cam.height - 1)
-        t_mid = t_start + 0.5 * (readout + exposure)
+        t_mid = t_start + 0.5 * frame_span_s(exposure, self.line_time_s, cam.height)
         sigma = self.psf_sigma_px
         margin_px = PSF_RADIUS_SIGMA * sigma + 1.0
 
         # Candidate stars: a cone around the boresight at mid-exposure wide enough for the motion during the frame.
-        t_end_all = t_start + readout + exposure
+        _, t_end_all = row_window(t_start, exposure, self.line_time_s, cam.height - 1)  # the last row closes
         sweep = trajectory.motion.max_rate(t_start, t_end_all) * (t_end_all - t_start)
         boresight = cam.inertial_to_camera(trajectory.attitude(t_mid)).inv().apply([0.0, 0.0, 1.0])
         radius = min(math.pi, cam.half_diagonal + sweep + margin_px / min(cam.fx, cam.fy) + 1e-3)
@@ -148,7 +149,7 @@ class StarRenderer:
             for _ in range(3):
                 xy = self._positions(trajectory, window_start[:, None] + 0.5 * exposure, units)[:, 0]
                 row = np.clip(np.nan_to_num(xy[:, 1], nan=0.0), 0.0, cam.height - 1)
-                window_start = t_start + row * self.line_time_s
+                window_start, _ = row_window(t_start, exposure, self.line_time_s, row)
 
         n_inst = self._instants(trajectory, t_start, t_end_all)
         frac = (np.arange(n_inst) + 0.5) / n_inst

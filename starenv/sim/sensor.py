@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.sim.conventions import ARCSEC
+from starenv.sim.conventions import ARCSEC, row_window
 from starenv.sim.drops import DropChannel, DropModel
 from starenv.sim.gyro import Gyro, GyroSamples, GyroSpec
 from starenv.sim.imager import Detector, DetectorSpec
@@ -141,7 +141,8 @@ class StarSensor:
                 image = np.zeros_like(image)
             heads.append(HeadFrame(image, dropped, truth, rendered.t_mid, rendered.n_instants))
         t_mid = heads[0].t_mid
-        window_end = t_start + sc.exposure_s + sc.heads[0].detector.line_time_s * (sc.heads[0].camera.height - 1)
+        first = sc.heads[0]
+        _, window_end = row_window(t_start, sc.exposure_s, first.detector.line_time_s, first.camera.height - 1)
         gyro = self.gyro.sample_until(sc.trajectory.body_rate, window_end)
         self.index += 1
         return Frame(

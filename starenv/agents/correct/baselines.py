@@ -1,4 +1,4 @@
-"""The baselines seed 003 compares its network with (its Table 6), fitted on the same measured/reference pairs.
+"""The baselines paper 003 compares its network with (its Table 6), fitted on the same measured/reference pairs.
 
 * :class:`PiecewiseLinearMap` -- piecewise-linear mapping on the Delaunay triangulation of the measured positions
   (scipy's ``LinearNDInterpolator``), nearest neighbour outside their convex hull;

@@ -1,4 +1,4 @@
-"""Seed 003's ground batch learning of the 2-D Legendre network, in torch as the paper trains it (its Sec. 3.2).
+"""Paper 003's ground batch learning of the 2-D Legendre network, in torch as the paper trains it (its Sec. 3.2).
 
 Stars pooled from frames over random sky (:func:`starenv.datasets.pairs.pooled_pairs`) are split 8:2 into training
 and test sets at random; the network (:mod:`starenv.agents.correct.legendre`: offsets ``F = W^T b`` at the measured
@@ -58,7 +58,7 @@ def train_ground(measured: np.ndarray, reference: np.ndarray, camera: Camera, or
     gen = torch.Generator().manual_seed(seed)
     history = []
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # 128 x 21 products: more threads cost ~20x in synchronisation
+    torch.set_num_threads(1)  # 128 x 21 products: far too small to repay the threads' synchronisation
     try:
         for _ in range(epochs):
             history.append(_epoch(torch, b, f, w, opt, gen, batch, tau))

@@ -1,6 +1,6 @@
-"""Seed 003's 2-D Legendre network (2DLNN) as a distortion corrector, with its online learners.
+"""Paper 003's 2-D Legendre network (2DLNN) as a distortion corrector, with its online learners.
 
-The model (seed 003, Eqs. 20-21): a measured centroid ``(u, v)`` px is normalised to ``x = (u - cx)/s``,
+The model (paper 003, Eqs. 20-21): a measured centroid ``(u, v)`` px is normalised to ``x = (u - cx)/s``,
 ``y = (v - cy)/s`` (``s`` = half the sensor width, so the sensor spans about [-1, 1]^2), expanded in the normalised
 Legendre modes ``b_m(x, y) = L_{l-k}(x) L_k(y)`` of total order <= ``order`` (21 modes at order 5,
 :func:`~starenv.sim.optics.legendre_basis`), and the offset ``F = W^T b`` (normalised units, one weight column per
@@ -36,6 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv import checks
 from starenv.agents.base import StarMeasurements
+from starenv.agents.blocks import wahba_svd
 from starenv.sim.optics import Camera, legendre_basis, legendre_mode_count
 from starenv.sim.sky import StarCatalog
 
@@ -43,7 +44,7 @@ ORDER = 5
 
 
 def scale_px(camera: Camera) -> float:
-    """The normalisation length ``s`` (px): half the sensor width (seed 003: 1024 for 2048 px)."""
+    """The normalisation length ``s`` (px): half the sensor width (paper 003: 1024 for 2048 px)."""
     return camera.width / 2.0
 
 
@@ -204,7 +205,7 @@ LEARNERS = {"rls": RlsLearner, "adam": AdamLearner}
 
 
 class LegendreCorrector:
-    """Seed 003's on-orbit distortion corrector (a :class:`~starenv.agents.base.DistortionCorrector`).
+    """Paper 003's on-orbit distortion corrector (a :class:`~starenv.agents.base.DistortionCorrector`).
 
     ``correct`` subtracts the network's offset from every detection; ``learn`` takes the frame's identified stars,
     their catalogue directions through the solved attitude and the calibrated camera as references, and updates the
@@ -284,8 +285,6 @@ def learn_frame(corrector: LegendreCorrector, measured: np.ndarray, catalog_id: 
     """One on-orbit step without images: correct the measured positions (n, 2) px of correctly identified stars
     (``catalog_id``, HIP numbers of ``catalog``), solve the attitude from them (SVD Wahba, unweighted) and let the
     corrector learn with it, as the pipeline does.  Returns the solved attitude (inertial -> body)."""
-    from starenv.agents.solve.solvers import wahba_svd
-
     stars = corrector.correct(StarMeasurements(measured, catalog_id=catalog_id), head, camera)
     body = camera.mounting.inv().apply(camera.unproject(stars.xy))
     inertial = catalog.unit[np.searchsorted(catalog.hip, catalog_id)]

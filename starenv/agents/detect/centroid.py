@@ -3,15 +3,15 @@
 The pipeline is vectorised (numpy / OpenCV); Python loops run only over the saddles of blobs being split and over
 the iterations of a Gaussian fit made for all stars at once.
 
-1. Local background and noise on a grid of tiles: the sigma-clipped mean of the pixels (a mean, as a median of
-   integer DN moves in whole DN) and the sigma-clipped spread of differences between neighbouring pixels (blind to
-   gradients), interpolated bilinearly between the tile centres and extrapolated linearly to the border, so
-   stray-light gradients are followed.
+1. Local background and noise on a grid of tiles (:func:`~starenv.agents.blocks.background_maps`): the
+   sigma-clipped mean of the pixels (a mean, as a median of integer DN moves in whole DN) and the sigma-clipped
+   spread of differences between neighbouring pixels (blind to gradients), interpolated bilinearly between the tile
+   centres and extrapolated linearly to the border, so stray-light gradients are followed.
 2. Spikes: a pixel standing far above the median of its 3 x 3 neighbourhood, further than a PSF allows (a hot pixel,
    a cosmic-ray hit or track, alone or on a star), takes that median; so do its neighbours that stand out likewise.
 3. Detection: the cleaned background-subtracted image, smoothed by a Gaussian matched to the PSF (optional), is
    thresholded at ``threshold_sigma`` times its local noise; 8-connected components of ``min_area_px`` to
-   ``max_area_px`` pixels are the candidates.
+   ``max_area_px`` pixels are the candidates (:func:`~starenv.agents.blocks.components_above`).
 4. Deblending: a blob holding several maxima of the detection image is split, each pixel following its steepest
    ascent to a maximum; a maximum whose rise above the highest saddle towards a brighter one is below the detection
    threshold or below ``deblend_contrast`` times its height is merged into that brighter one.
@@ -50,18 +50,15 @@ from scipy.special import erf, ndtr
 
 from starenv import checks
 from starenv.agents.base import StarMeasurements
+from starenv.agents.blocks import Workspace, background_maps, component_peaks, components_above
 from starenv.sim.optics import Camera
 
 METHODS = ("cog", "iwcog", "gaussian")
-BACKGROUND_SUBSAMPLE = 3  # every n-th pixel of a tile gives the robust start (median, IQR) of the clipping
-CLIP_ITERATIONS = 2
 SPIKE_MARGIN = 0.75  # a spike's 3 x 3 median is below this fraction of the least a PSF pixel's can be
 SPIKE_SIGMA = 3.0  # significance (noise sigmas) of the excess over the local median that marks a pixel as a spike
 SPIKE_GROW_SIGMA = 1.5  # the same for the neighbours of spikes, on the cleaned image
 MEDIAN_RATIO_FLOOR = 0.01  # PSF pixels below this fraction of the peak are left out of the spike limit
 MEDIAN_NOISE = 0.42  # noise of the median of 9 pixels, in pixel-noise sigmas
-MIN_TILE_KEPT = 0.25  # a tile whose clipping keeps less than this fraction of its pixels takes its neighbour's value
-QUANTISATION_NOISE_DN = 1.0 / math.sqrt(12.0)  # noise floor: the rounding of an integer read-out
 LINE_SIGNIFICANCE = 3.0  # the track test decides only where a star would pass it by this many errors
 PAIR_STEPS = np.array([(1, 0), (1, 1), (0, 1), (-1, 1)])  # pixel steps along 0, 45, 90, 135 deg (x right, y down)
 STREAK_ANISOTROPY_PX2 = 2.0  # blob-mask variance along minus across its axis above which a blob is a streak
@@ -210,7 +207,7 @@ class CentroidDetector:
         self.link_streaks = _flag("link_streaks", link_streaks)
 
         self._psf_constants: dict[float, _Psf] = {}
-        self._work: _Workspace | None = None
+        self._work: Workspace | None = None
 
     def _psf(self, camera: Camera) -> _Psf:
         """The constants that follow from the PSF sigma in force (this detector's, else the camera's)."""
@@ -230,20 +227,15 @@ class CentroidDetector:
         work = self._workspace(image.shape)
         data = work.array("data", np.float32)
         np.copyto(data, image, casting="unsafe")
-        level, noise = self._background(data, work)
+        level, noise = background_maps(data, self.tile_px, self.clip_sigma, work)
         resid = np.subtract(data, level, out=data)
         removed = self._clean_spikes(resid, noise, psf, work) if self.reject_sharp else None
         smooth = work.array("smooth", np.float32)
         cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, dst=smooth, borderType=cv2.BORDER_REFLECT)
         signal = smooth if self.matched_filter else resid
         limit = np.multiply(noise, np.float32(self.threshold_sigma * psf.filter_noise), out=work.array("limit"))
-        above = np.greater(signal, limit, out=work.array("above", bool))
-        labels = work.array("labels", np.int32)
-        n_label, _ = cv2.connectedComponentsWithAlgorithm(above.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_SAUF, labels)
-        pixel = np.flatnonzero(above.ravel())
-        component = labels.ravel()[pixel]
-        area = np.bincount(component, minlength=n_label)
-        kept = np.flatnonzero((area[1:] >= self.min_area_px) & (area[1:] <= self.max_area_px)) + 1
+        found = components_above(signal, limit, self.min_area_px, self.max_area_px, work)
+        n_label, pixel, component, kept = found.count, found.pixel, found.label, found.kept
         if len(kept) == 0:
             return StarMeasurements(np.zeros((0, 2)))
         if len(kept) >= MAX_LABELS:
@@ -294,81 +286,10 @@ class CentroidDetector:
         return StarMeasurements(xy[order], flux[order])
 
     def background(self, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Local background level and noise (DN) of a float32 image, both float32 (H, W): on tiles of about
-        ``tile_px``, the sigma-clipped mean of a quarter of the pixels and the sigma-clipped standard deviation of
-        differences between neighbouring pixels (over sqrt 2) on a quarter of the rows, interpolated bilinearly
-        between the tile centres."""
-        level, noise = self._background(data, _Workspace(data.shape))
+        """Local background level and noise (DN) of a float32 image, both float32 (H, W): the block
+        :func:`~starenv.agents.blocks.background_maps` on tiles of about ``tile_px`` with ``clip_sigma``."""
+        level, noise = background_maps(data, self.tile_px, self.clip_sigma)
         return np.array(level), noise
-
-    def _background(self, data: np.ndarray, work: _Workspace) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`background` into ``work``'s arrays (the level a row-strided view)."""
-        height, width = data.shape
-        ny, nx = max(1, round(height / self.tile_px)), max(1, round(width / self.tile_px))
-        th, tw = -(-height // ny), -(-width // nx)
-        # The last row and column of tiles end at the image border, overlapping the ones before.
-        if ny * th != height or nx * tw != width:
-            rows = np.r_[0 : (ny - 1) * th, height - th : height]
-            cols = np.r_[0 : (nx - 1) * tw, width - tw : width]
-            data = data[np.ix_(rows, cols)]
-        tiles = data.reshape(ny, th, nx, tw)
-        # Level from a quarter of the pixels, every other one on every other row, the rows alternating between the
-        # even and the odd columns (a sample centred on the tile, as a gradient needs); noise from differences of
-        # horizontal neighbours (blind to gradients) on every fourth row.  Both as (tiles, values) arrays.
-        level_sample = np.concatenate(
-            [tiles[:, i::4, :, j::2].transpose(0, 2, 1, 3).reshape(ny * nx, -1) for i, j in ((0, 0), (3, 1))], axis=1
-        )
-        rows = tiles[:, 1::4].transpose(0, 2, 1, 3)
-        centre, _, count = self._clipped_mean_std(level_sample)
-        _, spread, _ = self._clipped_mean_std((rows[..., 1:] - rows[..., :-1]).reshape(ny * nx, -1))
-        scale = np.maximum(spread / math.sqrt(2.0), QUANTISATION_NOISE_DN)
-
-        grid = np.stack([centre, scale], axis=-1).reshape(ny, nx, 2)
-        bad = (count < MIN_TILE_KEPT * level_sample.shape[1]).reshape(ny, nx)
-        if bad.any() and not bad.all():
-            grid = grid[tuple(ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True))]
-        # cv2.resize takes the tile centres to be every th (tw) px from (th - 1) / 2.  The last tile's centre lies
-        # short of that: extrapolate the last row / column linearly to it.  A ring of linearly extrapolated tiles
-        # around the grid carries the gradients out to the image border.
-        for axis, (n, step, size) in enumerate(((ny, th, height), (nx, tw, width))):
-            if n > 1 and n * step > size:
-                last, before = np.take(grid, n - 1, axis=axis), np.take(grid, n - 2, axis=axis)
-                index = [slice(None)] * 3
-                index[axis] = n - 1
-                grid[tuple(index)] = before + (last - before) * (step / (size - (n - 1) * step))
-        grid = np.pad(grid, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd").astype(np.float32)
-        # The level a view into its padded map (a row-strided array; numpy and OpenCV take it without a copy).
-        padded = ((ny + 2) * th, (nx + 2) * tw)
-        level, noise = (
-            cv2.resize(grid[..., k], padded[::-1], dst=work.array(name, np.float32, padded),
-                       interpolation=cv2.INTER_LINEAR)[th : th + height, tw : tw + width]
-            for k, name in enumerate(("level_map", "noise_map"))
-        )
-        return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN), out=work.array("noise"))
-
-    def _clipped_mean_std(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Mean, standard deviation and count of each row of ``values`` (float32) within +- ``clip_sigma``
-        standard deviations of its mean, iterated from the median and interquartile range of a subsample."""
-        sample = np.sort(values[:, ::BACKGROUND_SUBSAMPLE], axis=1)
-        q25, q50, q75 = (sample[:, (sample.shape[1] - 1) * q // 4] for q in (1, 2, 3))
-        centre = q50.astype(np.float64)
-        scale = np.maximum((q75 - q25) / 1.349, 0.5)
-        # Standard deviation of a unit normal clipped at +- clip_sigma: corrects the spread of the kept values.
-        c = self.clip_sigma
-        truncation = math.sqrt(1.0 - c * math.sqrt(2.0 / math.pi) * math.exp(-0.5 * c * c) / erf(c / math.sqrt(2.0)))
-        dev = np.empty(values.shape, np.float32)
-        inside = np.empty(values.shape, bool)
-        for _ in range(CLIP_ITERATIONS):
-            np.subtract(values, centre.astype(np.float32)[:, None], out=dev)
-            np.less_equal(np.abs(dev), (c * scale).astype(np.float32)[:, None], out=inside)
-            np.multiply(dev, inside, out=dev)
-            # Sums of at most a few thousand deviations of a few sigmas: float32 holds them to ~1e-6.
-            count = np.maximum(inside.view(np.uint8).sum(axis=1, dtype=np.int32), 1)
-            mean_dev = dev.sum(axis=1).astype(np.float64) / count
-            centre = centre + mean_dev
-            var = np.einsum("ij,ij->i", dev, dev).astype(np.float64) / count - mean_dev**2
-            scale = np.maximum(np.sqrt(np.maximum(var, 0.0)) / truncation, QUANTISATION_NOISE_DN)
-        return centre, scale, count
 
     def _check(self, image, camera: Camera) -> None:
         """Refuse anything but a 2-D integer or finite float array of the camera's size."""
@@ -382,11 +303,11 @@ class CentroidDetector:
         if np.issubdtype(image.dtype, np.floating) and not np.all(np.isfinite(image)):
             raise ValueError("image must be finite (no NaN or inf)")
 
-    def _workspace(self, shape: tuple[int, int]) -> _Workspace:
+    def _workspace(self, shape: tuple[int, int]) -> Workspace:
         """The frame-sized working arrays for images of ``shape``, kept between calls (allocating them anew for
         every frame costs more than filling them)."""
         if self._work is None or self._work.shape != shape:
-            self._work = _Workspace(shape)
+            self._work = Workspace(shape)
         return self._work
 
     def _saturation(self, image: np.ndarray) -> int | None:
@@ -399,7 +320,7 @@ class CentroidDetector:
         return top if top >= 255 and (top + 1) & top == 0 else None
 
     def _clean_spikes(
-        self, resid: np.ndarray, noise: np.ndarray, psf: _Psf, work: _Workspace
+        self, resid: np.ndarray, noise: np.ndarray, psf: _Psf, work: Workspace
     ) -> tuple[np.ndarray, np.ndarray]:
         """Replace, in place, spikes (hot pixels, cosmic-ray hits and tracks, alone or on a star) by the median of
         their 3 x 3 neighbourhood; return their flat indices and the DN taken off each.
@@ -645,21 +566,6 @@ def _gaussian_model(params: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray
     return flux * shape, jac
 
 
-class _Workspace:
-    """Named arrays of one frame size (or another shape asked for), made on first use and handed out again."""
-
-    def __init__(self, shape: tuple[int, int]):
-        self.shape = shape
-        self._arrays: dict[tuple[str, np.dtype], np.ndarray] = {}
-
-    def array(self, name: str, dtype=np.float32, shape: tuple[int, int] | None = None) -> np.ndarray:
-        """The array ``name`` of ``dtype`` and ``shape`` (default: the frame's), contents left from its last use."""
-        key = (name, np.dtype(dtype))
-        if key not in self._arrays:
-            self._arrays[key] = np.empty(self.shape if shape is None else shape, dtype)
-        return self._arrays[key]
-
-
 def _link_streaks(xy, flux, good, streak, centre, axis, var_major, sigma_px):
     """Join the pieces of one trail that noise broke below the threshold.
 
@@ -724,12 +630,7 @@ class _Blobs:
         self.flux = np.bincount(self.label, self.resid, n)
         self.in_core = core.ravel()[self.pixel] > 0
         # Peak: the brightest pixel of the un-grown blob, the last in raster order among equals.
-        core_label, core_resid = self.label[self.in_core], self.resid[self.in_core]
-        top = np.full(n, -np.inf)
-        np.maximum.at(top, core_label, core_resid)
-        at_top = core_resid == top[core_label]
-        self.peak = np.zeros(n, np.intp)
-        np.maximum.at(self.peak, core_label[at_top], self.pixel[self.in_core][at_top])
+        _, self.peak = component_peaks(self.label[self.in_core], self.resid[self.in_core], self.pixel[self.in_core], n)
 
     def centroid(self, weight: np.ndarray) -> np.ndarray:
         """Weighted centroids (n, 2) px of the blobs; a blob with no positive weight gets its pixels' mean."""

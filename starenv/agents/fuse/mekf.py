@@ -23,12 +23,10 @@ trail (``w x b_hat``, ``w`` the bias-corrected mean gyro rate of the step), ``L 
 (rad) and ``f`` the head's focal length in pixels: across the trail ``s_c^2 = (centroid_noise_px / f)^2 +
 (smear_noise_fraction * L)^2``, along it ``s_a^2 = s_c^2 + (along_trail_fraction * L)^2``.  The trail terms are an
 error budget, not a trail model.  A trail's centroid errs along the trail several times more than across it (the
-faint ends fall under a threshold, a neighbour or a noise peak pulls them): on ``paper_000`` at 30-75 deg/s about X
-the RMS errors of identified stars measured 2.4-3.4 % of the trail's length along it (trail fit) and 5-7 % (centre
-of gravity of the blurred frame), against 0.16-0.20 px across it (13-32 px trails); on ``paper_002`` at 5-20 deg/s
-the per-axis RMS of blurred trails measured 0.5-0.85 % of their length (39-157 px).  Hence 1 % across and 5 % along
-by default.  Weighted isotropically, the along-trail errors of stars left and right of the motion became roll errors
-of 100-200" that the filter, believing its 0.2 px, kept for frames.
+faint ends fall under a threshold, a neighbour or a noise peak pulls them), so the defaults weigh 1 % of the trail's
+length across it and 5 % along it, set from the identified stars' errors that ``docs/fusion.md`` reports.  Weighted
+isotropically, the along-trail errors of stars left and right of the motion become roll errors that the filter,
+believing its centroid noise, keeps for frames.
 A star whose innovation's squared Mahalanobis distance exceeds ``gate`` (chi-square, 2 degrees of freedom
 -- a unit vector error has two -- at 99.9 %: 13.8) is rejected; a frame whose accepted stars' normalised innovation
 squared exceeds the 99.9 % chi-square bound of its degrees of freedom is rejected whole.  The accepted stars update

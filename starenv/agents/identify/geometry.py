@@ -63,7 +63,8 @@ def resolvable(unit: np.ndarray, magnitude: np.ndarray, merge_rad: float) -> np.
 
 def closest_per_star(rows: np.ndarray, star: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``rows`` (ascending) and their stars, of rows paired with star ``star[row]`` at ``distance[row]`` (arrays over
-    all rows); a star paired with several rows keeps only the closest."""
+    all rows; any measure that grows with distance, such as minus the dot product of unit vectors); a star paired
+    with several rows keeps only the closest, the first listed among equals."""
     stars = star[rows]
     if len(set(stars.tolist())) < len(stars):
         order = np.argsort(distance[rows], kind="stable")

@@ -1,4 +1,4 @@
-"""Grid star identification (Padgett & Kreutz-Delgado 1997), the pattern comparator of seed 002.
+"""Grid star identification (Padgett & Kreutz-Delgado 1997), the pattern comparator of paper 002.
 
 *Pattern of a star*: its neighbours within ``pattern_radius`` (default: half the narrowest head's shorter field
 side, so a star at the image centre sees its whole pattern) in the gnomonic plane tangent at the star, turned so
@@ -8,12 +8,12 @@ the pattern's square: the set of occupied cells.
 *Database* (:meth:`GridIdentifier.reset`): the pattern of every resolvable catalogue star down to ``mag_limit``
 (neighbours from the same stars), as a sparse star x cell matrix, and each star's orientation neighbour.
 
-*Matching*: per head, the detection nearest the principal point (seed 002's "main star") is the pattern star; its
+*Matching*: per head, the detection nearest the principal point (paper 002's "main star") is the pattern star; its
 pattern from the other detections is scored against every catalogue pattern by shared cells; catalogue stars with
 at least ``min_score`` shared cells, best first (at most ``max_candidates``), give an attitude from the two pairs
 (pattern star, orientation star), verified against the whole catalogue (:mod:`starenv.agents.identify.verify`).
 The first verified hypothesis labels all heads' detections.  A missed or false nearest neighbour turns the whole
-pattern, the weakness seed 002 shows at high rates.  Ids are HIP numbers; -1 unidentified.
+pattern, the weakness paper 002 shows at high rates.  Ids are HIP numbers; -1 unidentified.
 """
 
 from __future__ import annotations
@@ -26,9 +26,10 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import StarMeasurements
+from starenv.agents.blocks import wahba_svd
 from starenv.agents.identify.geometry import body_vectors, with_ids
 from starenv.agents.identify.triangle import _MERGE_PX, usable_stars
-from starenv.agents.identify.verify import verify, wahba
+from starenv.agents.identify.verify import verify
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 
@@ -129,7 +130,7 @@ class GridIdentifier:
                 if self.orient[b] < 0:
                     continue
                 inertial = self.catalog.unit[[self.rows[b], self.orient[b]]]
-                attitude = wahba(mine[[centre, others[k]]], inertial)
+                attitude = Rotation.from_matrix(wahba_svd(mine[[centre, others[k]]], inertial))
                 v = verify(attitude, body, heads, cameras, self.catalog, self.radius_px, given=2)
                 if v.matched >= self.min_matches and v.p_false * tried <= self.max_false:
                     return with_ids(stars, v.ids)

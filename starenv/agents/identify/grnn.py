@@ -1,4 +1,4 @@
-"""Seed 004's multi-stage identifier for multi-head sensors: a GRNN on each star's triangle feature, verification
+"""Paper 004's multi-stage identifier for multi-head sensors: a GRNN on each star's triangle feature, verification
 against the library, and boresight-aided identification across heads (:class:`GrnnIdentifier`).
 
 Library (:class:`TriangleLibrary`).  The navigation stars are the catalogue's down to ``nav_mag_limit`` (the paper's
@@ -9,11 +9,12 @@ paper's Eqs. 1-3; Hipparcos to Hp 6.5 gives ``Omega = [0.399 0.578 0.712]``, the
 
 Stage 1, per head.  The ``stage1_stars`` brightest detections (default: 1.5 times the navigation stars expected in
 the head's field) form the image's triangles: each detection with its two nearest other detections.  Their feature
--- the scalar P (``feature="p"``, the paper's) or the three sides themselves (``feature="sides"``, ours) -- goes
-through a generalised regression network (:class:`Grnn`: Gaussian kernel regression, MATLAB ``newgrnn``'s spread
-convention, ``a = exp(-(0.8326 d / rho)^2)``) trained on ``draws`` noisy copies of every library star's feature
-(centroid noise rising 0 -> ``max_noise_px``, :mod:`starenv.datasets.triangles`), whose output is the star number
-as 13 bits (thresholded at 0.5; 0 or a number past the library: unidentified).
+-- the three sides themselves (``feature="sides"``, ours, the default) or the scalar P (``feature="p"``, the
+paper's, which does not identify: see :class:`GrnnIdentifier`) -- goes through a generalised regression network
+(:class:`Grnn`: Gaussian kernel regression, MATLAB ``newgrnn``'s spread convention, ``a = exp(-(0.8326 d / rho)^2)``)
+trained on ``draws`` noisy copies of every library star's feature (centroid noise rising 0 -> ``max_noise_px``,
+:mod:`starenv.datasets.triangles`), whose output is the star number as 13 bits (thresholded at 0.5; 0 or a number
+past the library: unidentified).
 
 Stage 2, verification.  An identified detection's image sides must match its library star's within
 ``eta = sqrt(2) delta theta`` on each side (the paper's Eq. 4: ``delta`` the spot radius, ``spot_radius_px``,
@@ -45,8 +46,8 @@ from scipy.spatial.transform import Rotation
 
 from starenv import checks
 from starenv.agents.base import StarMeasurements
+from starenv.agents.blocks import wahba_svd
 from starenv.agents.identify.geometry import chord
-from starenv.agents.solve.solvers import wahba_svd
 from starenv.datasets.triangles import nearest_two, noisy_three_sides, three_sides
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
@@ -134,16 +135,17 @@ def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class GrnnIdentifier:
-    """Seed 004's three-stage identifier (module docstring) as an :class:`~starenv.agents.base.Identifier`.
+    """Paper 004's three-stage identifier (module docstring) as an :class:`~starenv.agents.base.Identifier`.
 
-    Options: ``feature`` ("p": the paper's scalar P; "sides": the three sides), ``rho`` (GRNN spread, deg; the
-    paper's 0.01), ``nav_mag_limit`` (6.5), ``draws`` (noisy samples per star, 100) and ``max_noise_px`` (0.1),
-    ``spot_radius_px`` (None: 2 sigma of each head's calibrated spot), ``xi_deg`` (3), ``stage1_stars`` (None: 1.5
-    times the expected navigation stars per head), ``seed`` (training noise).  Training happens at :meth:`reset`
-    (about a second for 8 000 stars).
+    Options: ``feature`` ("sides", the default: the three sides; "p": the paper's scalar P, kept for comparison: it
+    identifies almost no star, because thousands of navigation stars' P values share a few degrees and lie closer
+    together than centroid noise moves one), ``rho`` (GRNN spread, deg; the paper's 0.01), ``nav_mag_limit`` (6.5),
+    ``draws`` (noisy samples per star, 100) and ``max_noise_px`` (0.1), ``spot_radius_px`` (None: 2 sigma of each
+    head's calibrated spot), ``xi_deg`` (3), ``stage1_stars`` (None: 1.5 times the expected navigation stars per
+    head), ``seed`` (training noise).  Training happens at :meth:`reset`.
     """
 
-    def __init__(self, feature: str = "p", rho: float = 0.01, nav_mag_limit: float = 6.5, draws: int = 100,
+    def __init__(self, feature: str = "sides", rho: float = 0.01, nav_mag_limit: float = 6.5, draws: int = 100,
                  max_noise_px: float = 0.1, spot_radius_px: float | None = None, xi_deg: float = 3.0,
                  stage1_stars: int | None = None, seed: int = 0):
         if feature not in ("p", "sides"):

@@ -1,6 +1,7 @@
-"""Star identification: lost in space by 4-star pattern hashing (Tetra), and tracking from a prior attitude.
+"""Lost-in-space star identification (:class:`LostInSpaceIdentifier`): 4-star pattern hashing (Tetra), no prior
+attitude needed.
 
-Lost in space (:class:`LostInSpaceIdentifier`)
+Method
     Brown & Stubis' Tetra (J. Brown and K. Stubis, "TETRA: Star Identification with Hash Tables", AIAA/USU Conference
     on Small Satellites, 2017), in the form of its successors tetra3 (ESA) and its fork cedar-solve: a pattern
     of four stars is described by the five smaller of its six pairwise angular distances divided by the largest (edge
@@ -46,12 +47,11 @@ Lost in space (:class:`LostInSpaceIdentifier`)
     first and counts the stars only when it fails (the false-match probability grows with ``p``, so what passes with
     the bound passes with the count: the same hypotheses are verified).
 
-Tracking (:class:`TrackingIdentifier`, :mod:`starenv.agents.identify.tracking`)
-    With a prior attitude: detections paired with the catalogue stars within a gate of their predicted positions by
-    the agreement of pairwise angles, solved, re-paired tightly and verified; this identifier is its fallback.
+    A star closer than ``MERGE_PX`` pixels to a brighter one is taken as part of it (the sensor sees one star):
+    detections are matched to the brighter only.
 
-    Both identifiers take a star closer than ``MERGE_PX`` pixels to a brighter one as part of it (the sensor sees
-    one star): detections are matched to the brighter only.
+The tracking identifier (:class:`~starenv.agents.identify.tracking.TrackingIdentifier`, which needs a prior
+attitude) is a separate module and falls back on this one when its verification fails.
 
 Ids are HIP numbers; -1 marks a detection left unidentified.
 """
@@ -65,13 +65,13 @@ import operator
 from typing import NamedTuple
 
 import numpy as np
-from scipy.linalg.lapack import dgesvd
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc
 
 from starenv import checks
 from starenv.agents.base import StarMeasurements
+from starenv.agents.blocks import wahba_svd
 from starenv.agents.identify.database import (
     BLEND_PX,
     N_SIGMA,
@@ -89,11 +89,11 @@ from starenv.agents.identify.geometry import (
     ORDER_EDGES,
     STAR_ORDERS,
     chord,
+    closest_per_star,
     resolvable,
     same_matches,
     with_ids,
 )
-from starenv.agents.solve.solvers import wahba_svd
 from starenv.sim.optics import Camera, NoDistortion
 from starenv.sim.sky import StarCatalog
 
@@ -129,36 +129,10 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
     return steps
 
 
-def _wahba(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
-    """The attitude (3, 3), inertial -> body, minimising sum |b - A r|^2 over pairs of unit vectors (n, 3): the SVD
-    solution of Wahba's problem as :func:`~starenv.agents.solve.solvers.wahba_svd`, for one set of pairs."""
-    u, _, vt, info = dgesvd(body.T.dot(inertial))  # LAPACK directly: numpy's wrapper costs more than the solution
-    if info != 0:
-        u, _, vt = np.linalg.svd(body.T @ inertial)
-    attitude = u.dot(vt)
-    (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
-    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:  # a reflection: flip the last axis
-        u[:, 2] = -u[:, 2]
-        attitude = u @ vt
-    return attitude
-
-
 def _pairs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``mask.nonzero()`` of a 2-d mask (rows and columns of its true entries, row-major), from the flat indices:
     numpy's 2-d nonzero costs several times more on small arrays."""
     return np.divmod(mask.ravel().nonzero()[0], mask.shape[1])
-
-
-def _closest_per_star(rows: np.ndarray, star: np.ndarray, dot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`~starenv.agents.identify.geometry.closest_per_star` with closeness as the dot product ``dot[row]`` of
-    unit vectors (the largest is the closest)."""
-    stars = star[rows]
-    if len(set(stars.tolist())) < len(stars):
-        order = np.argsort(-dot[rows], kind="stable")
-        _, first = np.unique(stars[order], return_index=True)
-        keep = np.sort(order[first])
-        rows, stars = rows[keep], stars[keep]
-    return rows, stars
 
 
 def _pinhole_rays(cam: Camera) -> np.ndarray:
@@ -391,7 +365,7 @@ class LostInSpaceIdentifier:
                     dot[detection] = dots[detection, star]
                     star_of = np.zeros(len(ids), dtype=np.intp)
                     star_of[detection] = star
-                    detection, star = _closest_per_star(detection, star_of, dot)
+                    detection, star = closest_per_star(detection, star_of, -dot)
                 ids[detection] = (self._label_hip[nearby.rows] if nearby.hip is None else nearby.hip)[star]
         if len(stars) == 1:
             return [StarMeasurements(stars[0].xy.copy(), stars[0].flux.copy(), ids)]
@@ -642,7 +616,7 @@ class LostInSpaceIdentifier:
             body, attitudes = pattern_body[0], []
             body_list = body.tolist()
             for inertial in catalog:
-                attitude = _wahba(body, inertial)
+                attitude = wahba_svd(body, inertial)
                 (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
                 if all(  # every star within its match radius
                     (a * x + b * y + c * z - u) ** 2 + (d * x + e * y + f * z - v) ** 2
@@ -660,7 +634,7 @@ class LostInSpaceIdentifier:
                 continue  # the same solution from another pattern
             nearby = self._nearby(frame, attitude)
             _, star, dot = self._closest(frame, attitude, nearby)
-            matched, rows = _closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, dot)
+            matched, rows = closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, -dot)
             m = len(matched)
             if m <= best_count or m < 3:
                 continue
@@ -693,29 +667,29 @@ class LostInSpaceIdentifier:
         """
         body, unit = frame.body, self._label_unit
         for _ in range(_GROW_STEPS):
-            attitude = _wahba(body[matched], unit[rows])
+            attitude = wahba_svd(body[matched], unit[rows])
             nearby = self._nearby(frame, attitude, nearby)
             dots, star, dot = self._closest(frame, attitude, nearby)
             within = dot >= frame.cos_radius
-            final = _closest_per_star(within.nonzero()[0], star, dot)
+            final = closest_per_star(within.nonzero()[0], star, -dot)
             grown = final
             band = ((dot >= frame.cos_grow) > within).nonzero()[0]  # only these may gain from a widened radius
             if len(band):
                 widened = self._widened(frame, matched, band, dot)
                 if len(widened):
                     within[widened] = True
-                    grown = _closest_per_star(within.nonzero()[0], star, dot)
+                    grown = closest_per_star(within.nonzero()[0], star, -dot)
             if same_matches(grown, (matched, rows)):
                 break
             matched, rows = grown
         else:
-            attitude = _wahba(body[matched], unit[rows])
+            attitude = wahba_svd(body[matched], unit[rows])
             nearby = self._nearby(frame, attitude, nearby)
             dots, star, dot = self._closest(frame, attitude, nearby)
-            final = _closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, dot)
+            final = closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, -dot)
             grown = None
         if grown is not final and not same_matches(final, (matched, rows)):  # (else the same matches)
-            attitude = _wahba(body[final[0]], unit[final[1]])
+            attitude = wahba_svd(body[final[0]], unit[final[1]])
             nearby = self._nearby(frame, attitude, nearby)
             dots = body.dot(attitude.dot(nearby.unit.T))
         return attitude, nearby, dots

@@ -1,4 +1,4 @@
-"""Seed 002's network as an identifier: the raw frame in, catalogue ids of the detections out, every answer verified.
+"""Paper 002's network as an identifier: the raw frame in, catalogue ids of the detections out, every answer verified.
 
 1. The network reads head 0's raw frame and ranks the navigation stars as the one on the boresight (the paper's
    "main star"); the ``top_k`` best are tried in turn.
@@ -51,13 +51,14 @@ def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> t
 
 
 class NetworkIdentifier:
-    """Lost-in-space identification by seed 002's network plus catalogue verification (see the module docstring).
+    """Lost-in-space identification by paper 002's network plus catalogue verification (see the module docstring).
 
     ``weights``: a run folder of ``starenv train`` (default: the shipped paper002_orion weights); ``top_k``: main-star
     candidates tried; ``rolls``: roll hypotheses per candidate; ``radius_px``: pairing radius (px);
     ``min_matches``: pairs needed; ``max_false``: largest accepted false-match probability (all hypotheses);
     ``threads``: torch's CPU thread count, set for the whole process (one frame at a time: one thread is fastest,
-    and two threads on a loaded 2-core machine made a forward pass 60 times slower; None leaves torch's setting).
+    and on a loaded machine threads that wait for busy cores slow a forward pass many times; None leaves torch's
+    setting).
     """
 
     def __init__(self, weights: str | Path = DEFAULT_WEIGHTS, device: str = "cpu", top_k: int = 3, rolls: int = 3,

@@ -1,4 +1,4 @@
-"""Seed 002's end-to-end identifier network (Han et al. 2021, Sec. 3): a raw smeared star image in, the index of
+"""Paper 002's end-to-end identifier network (Han et al. 2021, Sec. 3): a raw smeared star image in, the index of
 the navigation star on the boresight (the "main star") out.
 
 Architecture (paper, Figs. 4-6 and Eqs. 6-11), every size a field of :class:`MainStarConfig`:

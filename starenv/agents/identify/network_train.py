@@ -1,4 +1,4 @@
-"""``starenv train``: train seed 002's network on a ``main_star`` dataset, seeded, checkpointed and resumable.
+"""``starenv train``: train paper 002's network on a ``main_star`` dataset, seeded, checkpointed and resumable.
 
     starenv train --data DATA --out RUN [--val VAL] [--epochs N] [--batch B] [--lr LR] [--seed S]
                   [--device cpu|cuda] [--set key=value ...] [--rot90] [--max-minutes M] [--resume] [--init RUN]

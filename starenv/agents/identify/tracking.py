@@ -44,7 +44,7 @@ Steps (detections of all heads pooled as body-frame unit vectors):
 Steps 5 and 6 each test at half of ``max_false`` (``2 H`` and 2 hypotheses), so that the frame's two attempts
 together accept a wrong attitude with a probability below ``max_false``.
 
-What that allows.  Seed 002's 12 deg head (42 arcsec/px) with the catalogue to Hp 6.5 has ~1.1e3 stars/sr on
+What that allows.  Paper 002's 12 deg head (42 arcsec/px) with the catalogue to Hp 6.5 has ~1.1e3 stars/sr on
 average (~44 in a field), so a 3 px radius gives ``p ~ 7e-4``: a frame of 30 detections with agreeing candidate
 pairs ``H ~ 500`` is accepted by step 5 from ``m = 6`` pairs (bound ``2 H P`` 4.9e-6), not with 5 (1.1e-3); a frame
 of 4 detections needs all 4 and ``H <= 10``.  Step 6 accepts the same frame from 4 pairs under the prior (2.5e-6),
@@ -63,6 +63,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv import checks
 from starenv.agents.base import Identifier, StarMeasurements
+from starenv.agents.blocks import wahba_svd
 from starenv.agents.identify.geometry import (
     MERGE_PX,
     body_vectors,
@@ -73,7 +74,6 @@ from starenv.agents.identify.geometry import (
 )
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
 from starenv.agents.identify.verify import chance_match, false_match_probability
-from starenv.agents.solve.solvers import wahba_svd
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 

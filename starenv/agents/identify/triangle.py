@@ -1,10 +1,10 @@
-"""Triangle (angular-distance) star identification, the classical comparator of seed 002 (Liebe 1995 in its
-common form; seed 002 gives no implementation details).
+"""Triangle (angular-distance) star identification, the classical comparator of paper 002 (Liebe 1995 in its
+common form; paper 002 gives no implementation details).
 
 *Database* (:meth:`TriangleIdentifier.reset`): the catalogue's resolvable stars down to ``mag_limit``, and every
 pair of them closer than the largest head's field diagonal, sorted by angular distance.
 
-*Matching*: per head, the ``max_stars`` brightest detections plus the one nearest the principal point (seed 002's
+*Matching*: per head, the ``max_stars`` brightest detections plus the one nearest the principal point (paper 002's
 "main star") form triangles, brightest first.  A triangle's three angular distances select, within
 ``tolerance_px`` (through the plate scale), the catalogue pairs of each edge; catalogue triangles whose three pairs
 close (A-B, A-C, B-C) and whose handedness matches the detections' (a mirror image is not a rotation) are
@@ -24,8 +24,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import StarMeasurements
+from starenv.agents.blocks import wahba_svd
 from starenv.agents.identify.geometry import body_vectors, with_ids
-from starenv.agents.identify.verify import verify, wahba
+from starenv.agents.identify.verify import verify
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 
@@ -120,7 +121,7 @@ class TriangleIdentifier:
                 rows = offsets[h] + np.array(tri)
                 for cand in self._candidates(body[rows], tol):
                     tried += 1
-                    attitude = wahba(body[rows], self.catalog.unit[list(cand)])
+                    attitude = Rotation.from_matrix(wahba_svd(body[rows], self.catalog.unit[list(cand)]))
                     v = verify(attitude, body, heads, cameras, self.catalog, self.radius_px, given=3)
                     if v.matched >= self.min_matches and v.p_false * tried <= self.max_false:
                         return with_ids(stars, v.ids)

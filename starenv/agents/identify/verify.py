@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc
 
-from starenv.agents.solve.solvers import wahba_svd
+from starenv.agents.blocks import wahba_svd
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 
@@ -51,11 +51,6 @@ def false_match_probability(n: int, m: int, p: float, given: int = 0, hypotheses
     if m <= given:
         return 1.0
     return min(1.0, float(hypotheses * bdtrc(m - given - 1, n - given, p)))
-
-
-def wahba(body: np.ndarray, inertial: np.ndarray) -> Rotation:
-    """The rotation A (inertial -> body) minimising sum |b - A r|^2 over unit-vector pairs (n, 3), n >= 2 (SVD)."""
-    return Rotation.from_matrix(wahba_svd(body, inertial))
 
 
 @dataclass
@@ -109,7 +104,7 @@ def verify(attitude: Rotation, body: np.ndarray, heads: np.ndarray, cameras: lis
                 pairs_r.append(catalog.unit[rows[j]])
         if len(pairs_b) < 2:
             break
-        attitude = wahba(np.array(pairs_b), np.array(pairs_r))
+        attitude = Rotation.from_matrix(wahba_svd(np.array(pairs_b), np.array(pairs_r)))
     m = int((ids >= 0).sum())
     p = expected / n if n else 0.0
     p_false = false_match_probability(n, m, p, given)

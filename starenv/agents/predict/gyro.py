@@ -2,7 +2,7 @@
 
 Two :class:`~starenv.agents.base.Predictor` agents:
 
-* :class:`FirstOrderPredictor` -- seed 000's model (its Eqs. 1, 2, 5, 6, 7): measured star positions are turned into
+* :class:`FirstOrderPredictor` -- paper 000's model (its Eqs. 1, 2, 5, 6, 7): measured star positions are turned into
   direction vectors once, rotated by the first-order increment ``I - [w x] dt`` per gyro sample and projected back.
 * :class:`QuaternionPredictor` -- the rotation of every gyro sample applied exactly, with a two-sample coning
   correction; the predicted stars are catalog stars projected with the calibrated cameras.
@@ -17,8 +17,9 @@ sample interval once and whole.  Parts of an interval (after an update's time, b
 rate interpolated linearly inside the sample, ``r_k + s_k (t - centre_k)``, with the slope ``s_k`` from the
 neighbouring samples (``numpy.gradient``, second order): it keeps the sample's average, so the parts of a split
 interval add up to its delta-angle exactly.  Beyond the newest sample (and before the oldest) the nearest sample's
-line is extrapolated; with no sample at all the rate is taken as zero.  Held at the sample's average instead, the
-parts would err by up to 20 arcsec on a 2 deg, 4 Hz coning motion sampled at 200 Hz; interpolated, by 0.25 arcsec.
+line is extrapolated; with no sample at all the rate is taken as zero.  Held at the sample's average instead, a
+part would err by up to ``s dt^2 / 8`` (``s`` the rate's slope, ``dt`` the sample interval: the split at the
+sample's centre); interpolated, only the rate's curvature is left, an error of order ``dt^3``.
 
 ``margin_px`` (both): predicted stars are those imaged within this many pixels of the sensor (0: on the sensor).
 """
@@ -192,7 +193,7 @@ class _GyroPropagator:
 
 
 class FirstOrderPredictor(_GyroPropagator):
-    """Seed 000's star-spot predictor (its Sec. 2.2-2.3), carrying the stars given in ``update``.
+    """Paper 000's star-spot predictor (its Sec. 2.2-2.3), carrying the stars given in ``update``.
 
     * Eq. 1: measured positions are corrected with the calibrated camera's :class:`~starenv.sim.optics.RadialXY`
       coefficients when it has that model, else not at all (the paper knows no other distortion model).
@@ -223,8 +224,8 @@ class FirstOrderPredictor(_GyroPropagator):
     ``(theta^2 / 2) sin(beta) cos(beta) <= theta^2 / 4``, and rotates by ``atan|theta|`` instead of ``|theta|``
     (``theta^3 / 3`` short).  Re-orthonormalised, the attitude is left with the shortfall alone: a rotation by
     exactly ``atan|theta|`` about the increment's axis.  The model carries no coning correction either.  The
-    stretch adds up over increments about one axis: on paper_000 (1 deg/s per axis, 500 Hz gyro) it reaches
-    0.016 px (1.3 arcsec) after 15 s, while the attitude's shortfall stays near 1e-4 arcsec.
+    stretch adds up over increments about one axis: ``N theta^2 / 4`` after ``N`` increments, against the attitude's
+    ``N theta^3 / 3`` (on paper_000, 1 deg/s per axis at 500 Hz for 15 s, these come to about 1.4 and 1e-4 arcsec).
     """
 
     def _state_from(self, attitude: Rotation, stars: list[StarMeasurements]):
@@ -257,7 +258,7 @@ class FirstOrderPredictor(_GyroPropagator):
 
 
 def _paper_camera(camera: Camera) -> Camera:
-    """The camera as seed 000's model sees it: its RadialXY distortion if it has one, else an ideal pinhole."""
+    """The camera as paper 000's model sees it: its RadialXY distortion if it has one, else an ideal pinhole."""
     if isinstance(camera.distortion, RadialXY | NoDistortion):
         return camera
     return dataclasses.replace(camera, distortion=NoDistortion())

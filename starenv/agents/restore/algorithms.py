@@ -4,7 +4,7 @@ Convolution convention: ``'same'`` mode with zero padding, as ``scipy.signal.fft
 size ``k`` has its origin at index ``(k - 1) // 2`` along each axis (the centre of an odd kernel, as
 :func:`starenv.agents.restore.kernels.path_kernel` builds them).  Kernels are normalised to sum 1 on entry.
 
-Richardson-Lucy (seed 000, Eq. 26; seed 001, Eq. 24) for ``g = f (x) h + b`` with Poisson noise::
+Richardson-Lucy (paper 000, Eq. 26; paper 001, Eq. 24) for ``g = f (x) h + b`` with Poisson noise::
 
     f <- f * [ (g / (f (x) h + b + eps)) (*) h ]        ((*): correlation, convolution with h flipped)
 
@@ -16,7 +16,6 @@ of the 'same'-mode convolution, so the edge terms cancel.  (With an even size th
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import cv2
@@ -25,6 +24,7 @@ from scipy import fft
 from scipy.signal import fftconvolve
 
 from starenv import checks
+from starenv.agents.blocks import frame_background
 from starenv.sim.optics import Camera
 
 EPS = 1e-12  # added to the model image before dividing (skimage's value)
@@ -33,7 +33,7 @@ THREADED_FFT_PX = 256 * 256  # transforms of at least this many pixels per image
 
 def _workers(shape: tuple[int, int]) -> int:
     """scipy.fft workers for transforms of ``shape``: all cores for large images; one for small ones, where pocketfft's
-    threads cost more than they save (measured: a (108, 48, 48) batch 1.5x slower on 2 threads than on one)."""
+    threads cost more than they save (a transform of a few thousand pixels is shorter than the threads' hand-off)."""
     return -1 if shape[0] * shape[1] >= THREADED_FFT_PX else 1
 
 
@@ -224,91 +224,6 @@ def wiener(image, psf, nsr) -> np.ndarray:
     return fft.irfft2(spectrum, g.shape, workers=_workers(g.shape))
 
 
-MAD_TO_SIGMA = 1.4826  # standard deviation per median absolute deviation of a Gaussian
-BACKGROUND_STRIDE = 4  # every n-th pixel (each axis) enters the robust background estimate
-BACKGROUND_CLIP_SIGMA = 3.0  # the background statistics keep the pixels within this many sigmas of the mean
-BACKGROUND_CLIP_ROUNDS = 5
-# Standard deviation of a unit Gaussian cut at +-BACKGROUND_CLIP_SIGMA: sqrt(1 - 2 c phi(c) / (2 Phi(c) - 1)).
-_CLIPPED_SIGMA = math.sqrt(1.0 - 2.0 * BACKGROUND_CLIP_SIGMA * math.exp(-0.5 * BACKGROUND_CLIP_SIGMA**2)
-                           / math.sqrt(2.0 * math.pi) / math.erf(BACKGROUND_CLIP_SIGMA / math.sqrt(2.0)))
-
-
-def robust_background(image: np.ndarray) -> tuple[float, float]:
-    """Background level and noise (DN) of an image, from every ``BACKGROUND_STRIDE``-th pixel: the mean and standard
-    deviation of the pixels within ``BACKGROUND_CLIP_SIGMA`` sigmas, clipped again until the kept set stops changing
-    (at most ``BACKGROUND_CLIP_ROUNDS`` times), started from the median and ``1.4826 MAD``; the deviation is divided
-    by that of a Gaussian cut at the clip.  Not the median and MAD themselves: on an integer read-out with a noise of
-    a DN or two they move in whole DN (noises of 2.04 and 2.60 DN give MADs of 1 and 2, read as 1.48 and 2.97 DN).
-    The noise is at least 0.5 DN."""
-    sample = np.asarray(image[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE], dtype=np.float64).ravel()
-    level = float(np.median(sample))
-    noise = max(MAD_TO_SIGMA * float(np.median(np.abs(sample - level))), 0.5)
-    kept = None
-    for _ in range(BACKGROUND_CLIP_ROUNDS):
-        keep = np.abs(sample - level) <= BACKGROUND_CLIP_SIGMA * noise
-        if kept is not None and np.array_equal(keep, kept):
-            break
-        kept = keep
-        level = float(sample[keep].mean())
-        noise = max(float(sample[keep].std()) / _CLIPPED_SIGMA, 0.5)
-    return level, noise
-
-
-POINT_TEST_MAX_OVERLAP = 0.4  # the point test runs where a trail gives the spot filter at most this share of its own
-
-
-def streak_candidates(data: np.ndarray, level: float, noise: float, streak: np.ndarray, threshold_sigma: float,
-                      min_area_px: int, spot: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Candidate streaks of a frame (DN): the frame less its background ``level`` correlated with the expected trail
-    ``streak`` (the matched filter of a trail); 8-connected components of at least ``min_area_px`` pixels where the
-    response exceeds ``threshold_sigma`` times its noise (white pixel ``noise`` through the filter).  Returns their
-    centroids (k, 2) px (x, y), the positions of their response's peaks (k, 2) px and the peak responses (k,) in
-    noise sigmas.  Either position is the trail's centre where the trail matches ``streak`` (the response is then
-    symmetric about it, and the peak is not moved by a trail cut by the frame's edge); where the trail is longer than
-    ``streak`` the response has a plateau and only the centroid is its centre.
-
-    ``spot`` (the still star's kernel, normalised): components that a lone bright pixel explains (a hot pixel, a
-    cosmic-ray hit) are left out.  Over a component, ``P`` is the peak of the spot's matched filter and ``R`` the
-    trail's, both in noise sigmas; a trail gives ``P / R = rho``, the normalised cross-correlation peak of ``streak``
-    and ``spot``, a lone pixel ``P / R = 1 / kappa``, ``kappa = (max(streak) / |streak|) / (max(spot) / |spot|)``.
-    A component is a point when ``P > R`` and ``R - kappa P`` (the response left once the point's is taken away)
-    is below ``threshold_sigma``.  The test runs only where ``rho <= POINT_TEST_MAX_OVERLAP`` (trails of about 20 px
-    and more with a 1 px spot): for shorter trails the two hypotheses are too close to tell apart in the noise."""
-    signal = data.astype(np.float32)
-    signal -= np.float32(level)
-    streak_norm = float(np.sqrt(np.sum(streak**2)))
-    response = cv2.filter2D(signal, cv2.CV_32F, streak.astype(np.float32), borderType=cv2.BORDER_REFLECT)
-    response /= noise * streak_norm
-    above = (response > threshold_sigma).astype(np.uint8)
-    n, labels, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(above, 8, cv2.CV_32S, cv2.CCL_BBDT)
-    keep = stats[:, cv2.CC_STAT_AREA] >= min_area_px
-    keep[0] = False  # the background
-    flat = np.flatnonzero(above)  # the pixels above the threshold
-    lab, val = labels.ravel()[flat], response.ravel()[flat]
-    best = np.zeros(n, dtype=np.float32)
-    np.maximum.at(best, lab, val)
-    at_best = val == best[lab]
-    top = np.zeros(n, dtype=np.int64)  # each component's strongest pixel, the last in raster order on a tie
-    np.maximum.at(top, lab[at_best], flat[at_best])
-    if spot is not None:
-        spot_norm = float(np.sqrt(np.sum(spot**2)))
-        pad = max(spot.shape)
-        rho = cv2.filter2D(np.pad(streak, pad), -1, spot, borderType=cv2.BORDER_CONSTANT).max() / (streak_norm
-                                                                                                   * spot_norm)
-        if rho <= POINT_TEST_MAX_OVERLAP:
-            kappa = float(streak.max() / streak_norm) / float(spot.max() / spot_norm)
-            point = cv2.sepFilter2D(signal, cv2.CV_32F, spot.sum(axis=0).astype(np.float32),
-                                    spot.sum(axis=1).astype(np.float32), borderType=cv2.BORDER_REFLECT)
-            point_peak = np.zeros(n, dtype=np.float32)
-            np.maximum.at(point_peak, lab, point.ravel()[flat] / np.float32(noise * spot_norm))
-            keep &= ~((point_peak > best) & (best - kappa * point_peak < threshold_sigma))
-    keep = np.flatnonzero(keep)
-    if len(keep) == 0:
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
-    peak_xy = np.stack([top[keep] % data.shape[1], top[keep] // data.shape[1]], axis=1).astype(np.float64)
-    return centroids[keep].reshape(-1, 2), peak_xy, best[keep].astype(np.float64)
-
-
 def checked_image(image, camera: Camera) -> np.ndarray:
     """``image`` as a finite 2-D array of the camera's shape (DN), else ValueError."""
     if not isinstance(image, np.ndarray) or image.ndim != 2:
@@ -408,20 +323,14 @@ def curvature_energy(f: np.ndarray) -> float:
     return float(np.abs(nearest_plane_step(f)).sum())
 
 
-def noise_sigma(image: np.ndarray) -> float:
-    """Robust pixel noise (same units as ``image``): MAD of horizontal neighbour differences / (0.6745 sqrt 2)."""
-    diff = np.diff(np.asarray(image, dtype=np.float64), axis=-1).ravel()
-    return float(np.median(np.abs(diff - np.median(diff))) / (0.6745 * math.sqrt(2.0)))
-
-
 def curvature_filter(image: np.ndarray, threshold: float | None = None, iterations: int = 3,
                      alpha: float = 1.0, threshold_sigma: float = 3.0) -> np.ndarray:
-    """Seed 001's improved Gaussian-curvature filter (module docstring): float64 (..., H, W) from an image or a stack
+    """Paper 001's improved Gaussian-curvature filter (module docstring): float64 (..., H, W) from an image or a stack
     of images (each filtered alone, edges replicated).
 
     ``threshold``: the energy gate T in the image's units (None: ``threshold_sigma`` times the noise sigma of the
-    image, of the whole stack for a stack); ``iterations``: passes over the image; ``alpha``: exponent of the
-    edge-preserving potential, 1 to 2.
+    image, of the whole stack for a stack, by :func:`~starenv.agents.blocks.frame_background`); ``iterations``:
+    passes over the image; ``alpha``: exponent of the edge-preserving potential, 1 to 2.
     """
     image = checks.finite("image", image)
     if image.ndim < 2 or min(image.shape[-2:]) < 3:
@@ -431,7 +340,7 @@ def curvature_filter(image: np.ndarray, threshold: float | None = None, iteratio
     iterations = checks.integer("iterations", iterations, 0, 1000)
     alpha = checks.in_range("alpha", alpha, 1.0, 2.0)
     if threshold is None:
-        t = checks.non_negative("threshold_sigma", threshold_sigma) * noise_sigma(f)
+        t = checks.non_negative("threshold_sigma", threshold_sigma) * frame_background(f)[1]
     else:
         t = checks.non_negative("threshold", threshold)
     h, w = f.shape[-2:]

@@ -9,7 +9,7 @@ would have taken, with the frame's own noise: stars of the shape a detector tune
 Richardson-Lucy estimate has one-pixel stars, which a detector's hot-pixel tests reject, and amplified noise).
 
 * :class:`RichardsonLucyDeblurrer`: one kernel for the whole frame, the path of a star at the frame centre
-  (seed 000's single-kernel model), Richardson-Lucy over the full frame.
+  (paper 000's single-kernel model), Richardson-Lucy over the full frame.
 * :class:`WienerDeblurrer`: the same kernel, frequency-domain Wiener filter of the background-subtracted frame.
 * :class:`RoiDeblurrer`: candidate streaks (connected components of a matched-filter response above the robust
   background noise), one patch per candidate restored with that candidate's own space-variant kernel, the patches
@@ -24,7 +24,8 @@ import numpy as np
 
 from starenv import checks
 from starenv.agents.base import StepInput
-from starenv.agents.restore.algorithms import checked_image, resharpen, richardson_lucy, robust_background, wiener
+from starenv.agents.blocks import frame_background
+from starenv.agents.restore.algorithms import checked_image, resharpen, richardson_lucy, wiener
 from starenv.agents.restore.kernels import frame_kernel, sigma_for, spot_sigma
 
 
@@ -44,7 +45,7 @@ class _FrameKernelDeblurrer:
     def deblur(self, image: np.ndarray, head: int, step: StepInput) -> np.ndarray:
         data = checked_image(image, step.cameras[head])
         sigma = sigma_for(self.psf_sigma_px, step.cameras[head])
-        level, _ = robust_background(data)
+        level, _ = frame_background(data)
         kernel, _ = frame_kernel(step, head, sigma)
         restored = self.estimate(data, level, kernel)
         self.last_info = {"iterations": self.iterations, "kernel_px": int(max(kernel.shape))}

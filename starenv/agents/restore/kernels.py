@@ -7,7 +7,7 @@ the image at ``du/dt = fx (-w_y (1 + x^2) + w_x x y + w_z y)`` and ``dv/dt = fy 
 
 Two models:
 
-* seed 000's *linear* kernels (its Sec. 3.1): :func:`cross_boresight_blur` (Eqs. 9-15: rotation about the camera X
+* paper 000's *linear* kernels (its Sec. 3.1): :func:`cross_boresight_blur` (Eqs. 9-15: rotation about the camera X
   and Y axes; each axis moves the star along one image axis by ``f [tan(alpha + w T) - tan(alpha)]``, Eq. 9, with
   ``alpha`` the star's field angle along that axis) and :func:`boresight_blur` (Eqs. 16-21: roll about the boresight
   moves the star on a circle about the principal point; the arc is replaced by its chord).  Each gives a straight
@@ -31,7 +31,8 @@ from scipy.spatial.transform import Rotation
 
 from starenv import checks
 from starenv.agents.base import StepInput
-from starenv.agents.restore.algorithms import checked_image, robust_background, streak_candidates
+from starenv.agents.blocks import frame_background, row_window, streak_candidates
+from starenv.agents.restore.algorithms import checked_image
 from starenv.sim.gyro import GyroSamples
 from starenv.sim.optics import Camera
 from starenv.sim.render import band_fractions
@@ -51,12 +52,12 @@ class LinearBlur:
 
     @property
     def length(self) -> np.ndarray:
-        """Trail length (n,) px (seed 000, Eqs. 13 and 18)."""
+        """Trail length (n,) px (paper 000, Eqs. 13 and 18)."""
         return np.linalg.norm(self.end - self.start, axis=1)
 
     @property
     def angle(self) -> np.ndarray:
-        """Trail direction (n,) rad from +u (columns) towards +v (rows), ``atan2(dv, du)`` (seed 000, Eqs. 14, 17)."""
+        """Trail direction (n,) rad from +u (columns) towards +v (rows), ``atan2(dv, du)`` (paper 000, Eqs. 14, 17)."""
         d = self.end - self.start
         return np.arctan2(d[:, 1], d[:, 0])
 
@@ -67,16 +68,16 @@ class LinearBlur:
         return self.start[:, None, :] + frac[None, :, None] * (self.end - self.start)[:, None, :]
 
     def kernels(self, sigma_px: float) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The uniform line PSF of each trail (seed 000, Eqs. 15 and 21) convolved with the pixel-integrated Gaussian:
+        """The uniform line PSF of each trail (paper 000, Eqs. 15 and 21) convolved with the pixel-integrated Gaussian:
         one :func:`path_kernel` result per star."""
         return [path_kernel(p, sigma_px) for p in self.paths()]
 
 
 def cross_boresight_blur(xy_mid, rate_xy, exposure_s: float, camera: Camera) -> LinearBlur:
-    """Seed 000's linear kernel for rotation about the camera's X and Y axes (Eqs. 9-15).
+    """Paper 000's linear kernel for rotation about the camera's X and Y axes (Eqs. 9-15).
 
     ``xy_mid`` (n, 2) ideal pinhole px: the stars at mid-exposure; ``rate_xy`` (2,) rad/s: camera-frame rates about
-    X and Y (seed 000's Eq. 23 maps gyro body rates through the mounting); ``exposure_s`` (s).  Rotation about X
+    X and Y (paper 000's Eq. 23 maps gyro body rates through the mounting); ``exposure_s`` (s).  Rotation about X
     moves a star along v by ``fy [tan(alpha_y + w_x tau) - tan(alpha_y)]``, with ``tan(alpha_y) = (v - cy)/fy``;
     rotation about Y moves it along u by ``fx [tan(alpha_x - w_y tau) - tan(alpha_x)]``; ``tau`` runs over
     ``[-T/2, T/2]``.  To first order the length is Eq. 13, ``f (tan^2 alpha + 1) w T``, and the direction Eq. 14.
@@ -93,7 +94,7 @@ def cross_boresight_blur(xy_mid, rate_xy, exposure_s: float, camera: Camera) -> 
 
 
 def boresight_blur(xy_mid, rate_z: float, exposure_s: float, camera: Camera) -> LinearBlur:
-    """Seed 000's linear kernel for roll about the boresight (Eqs. 16-21).
+    """Paper 000's linear kernel for roll about the boresight (Eqs. 16-21).
 
     A star at ``(u', v') = (u - cx, v - cy)`` (ideal pinhole px, mid-exposure) turns about the principal point by
     ``-w_z tau`` (image axes x right, y down; ``rate_z`` rad/s about the camera's +Z); the trail is the chord between
@@ -172,11 +173,12 @@ def star_paths(camera: Camera, gyro: GyroSamples, t_start: float, t_end: float, 
     motion = ExposureMotion(camera, gyro, t_start, t_end, n_samples)
     if lt == 0:
         return motion.paths(xy)
-    shift = lt * np.clip(xy[:, 1], 0.0, camera.height - 1)
+    rows = np.clip(xy[:, 1], 0.0, camera.height - 1)
     out = np.empty((len(xy), len(motion.offsets), 2))
-    for s in np.unique(shift):  # one exposure window per row
-        sel = np.flatnonzero(shift == s)
-        out[sel] = ExposureMotion(camera, gyro, t_start + s, t_end + s, len(motion.offsets)).paths(xy[sel])
+    for row in np.unique(rows):  # one exposure window per row
+        sel = np.flatnonzero(rows == row)
+        opens, closes = row_window(t_start, t_end - t_start, lt, row)
+        out[sel] = ExposureMotion(camera, gyro, opens, closes, len(motion.offsets)).paths(xy[sel])
     return out
 
 
@@ -196,7 +198,7 @@ class ExposureMotion:
         t0 = float(checks.finite("t_start", t_start, shape=()))
         t1 = checks.in_range("t_end", t_end, t0, unit="s")
         if n_samples is None:
-            # Largest image speed: |w| f (1 + tan^2(alpha)) at the field corner (seed 000, Eq. 11).
+            # Largest image speed: |w| f (1 + tan^2(alpha)) at the field corner (paper 000, Eq. 11).
             w_max = float(np.abs(checks.finite("gyro.rate", gyro.rate)).sum(axis=1).max(initial=0.0))
             px_per_rad = max(camera.fx, camera.fy) * (1.0 + math.tan(camera.half_diagonal) ** 2)
             m = _odd_samples(w_max * (t1 - t0) * px_per_rad, None)
@@ -305,8 +307,10 @@ def sigma_for(option: float | None, camera: Camera) -> float:
 
 
 def window(step: StepInput) -> tuple[float, float]:
-    half = 0.5 * float(step.exposure_s)
-    return step.time_s - half, step.time_s + half
+    """The exposure window (opens, closes) s of ``step``'s frames, a global shutter's (:func:`row_window` of the frame
+    opening half an exposure before the mid-exposure time ``step.time_s``)."""
+    exposure = float(step.exposure_s)
+    return row_window(step.time_s - 0.5 * exposure, exposure)
 
 
 def exposure_path(step: StepInput, head: int, xy_mid=None) -> np.ndarray:
@@ -334,9 +338,9 @@ def centre_kernel(step, head: int, sigma_px: float) -> tuple[np.ndarray, np.ndar
 
 @dataclass
 class FrameStreaks:
-    """One head's frame ready for restoration: the checked frame ``data`` (DN), the spot ``sigma`` (px), the robust
-    background ``level`` and ``noise`` (DN), and the candidate streaks of
-    :func:`~starenv.agents.restore.algorithms.streak_candidates` (``centroids`` and ``peaks`` (k, 2) px, peak
+    """One head's frame ready for restoration: the checked frame ``data`` (DN), the spot ``sigma`` (px), the
+    background ``level`` and ``noise`` (DN, :func:`~starenv.agents.blocks.frame_background`), and the candidate
+    streaks of :func:`~starenv.agents.blocks.streak_candidates` (``centroids`` and ``peaks`` (k, 2) px, peak
     ``responses`` (k,) in noise sigmas) found with the frame centre's kernel, drawn from its path ``streak_path``
     (m, 2) px (:func:`exposure_path`), its kernel ``streak``, the still ``spot`` kernel (None: lone bright pixels
     kept), and the finder's ``threshold_sigma`` and ``min_area_px``."""
@@ -378,11 +382,11 @@ def frame_streaks(image, head: int, step: StepInput, psf_sigma_option: float | N
                   min_area_px: int, drop_points: bool = False) -> FrameStreaks:
     """The :class:`FrameStreaks` of head ``head``'s ``image`` at ``step`` (``psf_sigma_option``: a deblurrer's
     ``psf_sigma_px``, None for the calibrated camera's; ``drop_points``: candidates that a lone bright pixel explains
-    are left out, :func:`~starenv.agents.restore.algorithms.streak_candidates` with the still spot)."""
+    are left out, :func:`~starenv.agents.blocks.streak_candidates` with the still spot)."""
     cam = step.cameras[head]
     data = checked_image(image, cam)
     sigma = sigma_for(psf_sigma_option, cam)
-    level, noise = robust_background(data)
+    level, noise = frame_background(data)
     path = exposure_path(step, head)
     streak, _ = path_kernel(path, sigma)  # as frame_kernel draws it
     spot = path_kernel(np.zeros((1, 2)), sigma)[0] if drop_points else None

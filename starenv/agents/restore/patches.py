@@ -2,7 +2,7 @@
 space-variant gyro kernel, then pasted back resharpened (:func:`restore_streaks`).
 
 The engine of the region-of-interest deblurrers: :class:`~starenv.agents.restore.roi.RoiDeblurrer` (plain
-Richardson-Lucy) and the ``region="streaks"`` modes of seed 000's and seed 001's restorers, which differ only in how
+Richardson-Lucy) and the ``region="streaks"`` modes of paper 000's and paper 001's restorers, which differ only in how
 a stack of patches is deconvolved (the ``deconvolve`` callable).  Work grows with the stars, not the frame.
 
 A candidate's kernel is the path of a star at that candidate's centroid (:func:`~starenv.agents.restore.kernels.

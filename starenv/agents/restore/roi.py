@@ -15,7 +15,7 @@ from starenv.agents.restore.patches import restore_streaks
 class RoiDeblurrer:
     """Richardson-Lucy on patches around candidate streaks, each with its own space-variant kernel.
 
-    Candidates: :func:`~starenv.agents.restore.algorithms.streak_candidates` with the frame centre's streak (the
+    Candidates: :func:`~starenv.agents.blocks.streak_candidates` with the frame centre's streak (the
     kernel of a star at the frame centre with the sensor's ``psf_sigma_px``), ``threshold_sigma`` and
     ``min_area_px``, at their centroids.  Each is restored on its own patch by
     :func:`~starenv.agents.restore.patches.restore_streaks` (its kernel drawn with the sensor's spot, ``margin_px``

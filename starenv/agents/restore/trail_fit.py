@@ -28,8 +28,8 @@ position lies on the frame; the other candidates are left as observed.  The cand
 (one batch of Gauss-Newton steps for all); of two fits that land on one star (a trail found as two candidates) the
 brighter is kept.  Each kept fit's residual is then searched for a second, parallel trail (a pair the candidate
 finder took for one trail), which is fitted and kept like a first fit (:meth:`TrailFitDeblurrer._second_stars`):
-left as observed, it would sit beside the restored star for the detector to merge with it (on seed 002's frames at
-5 deg/s such pairs, 5-6 px apart, pulled 5 % of the identified stars by 1-1.6 px and doubled the attitude error).
+left as observed, it would sit beside the restored star for the detector to merge with it, pulling the merged
+centroid off the star by a part of their separation.
 The first star of such a pair is then fitted again with the second's light taken off, and the second again without
 the first's (one step of fitting the two together).
 
@@ -44,7 +44,7 @@ trail is a detection no star explains, which the identifier may take for a catal
 Output.  The observed frame with each kept trail replaced by its still star: ``g - F T(c) + F S(c)``, ``S`` the
 still spot (the same model with no motion), so the residual noise stays as observed and a detector tuned to the
 sensor finds a point star at ``c``.  Candidates: the matched-filter streak finder of
-:func:`starenv.agents.restore.algorithms.streak_candidates`.
+:func:`starenv.agents.blocks.streak_candidates`.
 """
 
 from __future__ import annotations
@@ -69,15 +69,15 @@ PSF_REACH_SIGMA = 4.0  # the fit covers pixels within this many spot sigmas (+ S
 SHIFT_PX = 2.0  # how far the fit may move a candidate from its first position before its pixels run out (px)
 ALONG_FRACTION = 0.1  # along the trail it may move SHIFT_PX + this fraction of the trail's length further
 MAX_STEP_PX = 0.01  # Gauss-Newton stops when the position moves less than this (px)
-# A trail is drawn as chords no farther than this from its gyro path (px).  On paper_002 at 10 deg/s it draws one
-# chord where 0.05 px drew two, and moves the fitted centres by 0.04 px (median), a seventh of their sigma.
+# A trail is drawn as chords no farther than this from its gyro path (px): a fraction of the fitted centres' sigma,
+# so the chords' departure from the path stays under the fit's noise while a long trail needs few chords.
 CHORD_TOLERANCE_PX = 0.1
 MAX_CHORDS = 32
 MODEL_CHUNK_PX = 1 << 14  # trail_model evaluates this many pixels at a time (float32: in cache)
 NEAR_CHUNK_PX = 1 << 16  # near_paths screens this many pixels at once (float32: in cache)
 ERF_SATURATION = 6.0  # |a| beyond which erf(a) rounds to +-1 (from 5.93 in float64, sooner in float32)
-# exp() arguments are held above this: its underflow (and products of two underflows) take numpy's slow path, some
-# 20x slower; exp(-30) = 1e-13 of the peak, below float32's resolution of any sum
+# exp() arguments are held above this: its underflow (and products of two underflows) take numpy's slow path, many
+# times slower; exp(-30) = 1e-13 of the peak, below float32's resolution of any sum
 GAUSS_FLOOR = -30.0
 SECOND_SIGMA = 5.0  # a parallel trail in a fit's residual this significant (noise sigmas) is a second star
 SECOND_SCREEN = 1.0  # residuals whose excess sum of squares is below this many of its sigmas are not searched
@@ -94,7 +94,7 @@ def _gauss(z: np.ndarray) -> np.ndarray:
 
 def _erf(a: np.ndarray) -> np.ndarray:
     """``scipy.special.erf(a)``, bit for bit, evaluated only where it is not +-1 (most of a trail's pixels lie far
-    from its chords' ends, where it is: 3x faster there)."""
+    from its chords' ends, where it is, and skip the erf call there)."""
     out = np.sign(a)
     near = np.flatnonzero(np.abs(a) < ERF_SATURATION)
     out.ravel()[near] = erf(a.ravel()[near])
@@ -149,7 +149,7 @@ def trail_model(x: np.ndarray, y: np.ndarray, centre, knots: np.ndarray, sigma: 
     / L``, across it ``phi(v / s) / s``, with ``s^2 = sigma^2 + 1/12`` (the pixel's box added to the spot: the
     renderer integrates the spot over each pixel; this is its second-moment match, within 1 % of the peak); a chord
     of length 0 is a round Gaussian.  Positions relative to the chords are taken in float64, the profiles in
-    ``dtype`` (float32: 1e-6 of the peak, far below the model's own 1 %, at 2/3 of float64's cost), which the three
+    ``dtype`` (float32: 1e-6 of the peak, far below the model's own 1 %, and cheaper than float64), which the three
     arrays returned have; ``derivatives=False``: the trail alone, the derivatives None."""
     single = np.ndim(x) == 1
     x, y = np.atleast_2d(x), np.atleast_2d(y)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from starenv.agents.blocks import wahba_svd
 from starenv.checks import choice, finite
 
 # Smallest sine of the angle between two of the vectors (in each set) for the attitude to count as observable: below
@@ -189,8 +190,8 @@ class QuestSolver:
     4. Fallback to the q-method (``numpy.linalg.eigh``) when the quartic cannot resolve lambda_max: Newton's slope
        turns non-positive, no step falls below NEWTON_TOLERANCE within NEWTON_MAX_STEPS, or the root's rounding
        error is too large for step 3 (see :func:`_lambda_max_newton`).  The step size alone does not reveal this:
-       with three stars weighted 1 : 1e-10 : 3e-10 (gap ~5e-10), Newton stops with steps below 1e-12 on roots up to
-       4e-9 off, and the attitudes from them are off by up to 2.9 rad.
+       with three stars weighted 1 : 1e-10 : 3e-10 (gap ~5e-10), Newton stops with steps below 1e-12 on a root that
+       rounding has moved by more than the gap, and the attitude from it can be off by radians.
     """
 
     def solve(self, body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None = None) -> Rotation:
@@ -219,22 +220,13 @@ class DavenportSolver:
         return _rotation(_q_method(_profile(*wahba_inputs(body, inertial, weights))))
 
 
-def wahba_svd(body: np.ndarray, inertial: np.ndarray) -> np.ndarray:
-    """Batched, unweighted Wahba: attitude matrices (..., 3, 3), inertial -> body, minimising sum |b - A r|^2 over
-    pairs of unit vectors (..., n, 3), by SVD.  Unchecked, for the identifiers' inner loops; :class:`SvdSolver` is
-    the checked, weighted single solution."""
-    u, _, vt = np.linalg.svd(np.swapaxes(body, -1, -2) @ inertial)
-    u[..., :, 2] *= np.linalg.det(u @ vt)[..., None]
-    return u @ vt
-
-
 class SvdSolver:
-    """Markley's SVD method: with ``B = U diag(s) V^T``, ``A = U diag(1, 1, det U det V) V^T``."""
+    """Markley's SVD method: with ``B = U diag(s) V^T``, ``A = U diag(1, 1, det(U V^T)) V^T``
+    (:func:`starenv.agents.blocks.wahba_svd`)."""
 
     def solve(self, body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None = None) -> Rotation:
         """Attitude (inertial -> body) minimising Wahba's loss; see :func:`wahba_inputs` for the checks."""
-        u, _, vt = np.linalg.svd(_profile(*wahba_inputs(body, inertial, weights)))
-        return Rotation.from_matrix(u @ np.diag([1.0, 1.0, np.linalg.det(u) * np.linalg.det(vt)]) @ vt)
+        return Rotation.from_matrix(wahba_svd(*wahba_inputs(body, inertial, weights)))
 
 
 SOLVERS = {"quest": QuestSolver, "davenport": DavenportSolver, "svd": SvdSolver}

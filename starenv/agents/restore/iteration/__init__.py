@@ -1,4 +1,4 @@
-"""Seed 000's improved Richardson-Lucy: the iteration count predicted from the blur kernel by a small ensemble of
+"""Paper 000's improved Richardson-Lucy: the iteration count predicted from the blur kernel by a small ensemble of
 back-propagation networks (numpy), trained on simulated frames.
 
 * :mod:`.features`: the kernel's SUMFC feature and the "optimal iteration" a training sample is labelled with;

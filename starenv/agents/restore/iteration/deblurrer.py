@@ -1,4 +1,4 @@
-"""``IterationNetDeblurrer``: seed 000's improved Richardson-Lucy, the iteration count from the EBPNN."""
+"""``IterationNetDeblurrer``: paper 000's improved Richardson-Lucy, the iteration count from the EBPNN."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ REGIONS = ("frame", "streaks")
 
 
 class IterationNetDeblurrer:
-    """Full-frame Richardson-Lucy with the frame centre's gyro kernel (seed 000's single kernel per image) and the
+    """Full-frame Richardson-Lucy with the frame centre's gyro kernel (paper 000's single kernel per image) and the
     iteration count the EBPNN predicts from the kernel's SUMFC (rounded, clipped to [1, ``max_iterations``]).
 
     ``weights``: an ``.npz`` from ``python -m starenv.agents.restore.iteration.train`` (default: the shipped

@@ -1,4 +1,4 @@
-"""Seed 000's EBPNN (Sec. 3.3, Eqs. 27-32): three 1-10-1 back-propagation networks, bagged, refined just in time.
+"""Paper 000's EBPNN (Sec. 3.3, Eqs. 27-32): three 1-10-1 back-propagation networks, bagged, refined just in time.
 
 Network: ``y = W2 . sigmoid(W1 x + b1) + b2`` (1 input, 10 sigmoid hidden units, linear output), in numpy.  The
 input is ``ln SUMFC`` and the target the optimal iteration count, both scaled to [0, 1] by the training set's range

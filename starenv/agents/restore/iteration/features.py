@@ -1,4 +1,4 @@
-"""The EBPNN's input and target (seed 000, Sec. 3.3 and 4.2).
+"""The EBPNN's input and target (paper 000, Sec. 3.3 and 4.2).
 
 SUMFC, "the sum of the magnitudes of the Fourier coefficients" of the blur kernel: the paper gives no grid or
 normalisation.  We take the kernel normalised to sum 1, zero-padded to ``SUMFC_GRID`` x ``SUMFC_GRID`` and divide the
@@ -7,8 +7,8 @@ than a sum: the same ordering, grid-size free).
 
 The optimal iteration count: the Richardson-Lucy iteration, up to a cap, whose estimate has the least mean squared
 error against the sharp reference (the highest PSNR).  The paper's automatic iterative RL (Sec. 4.2) stops at the
-first rise of that MSE; in a first training set that rule labelled 5 of 160 frames "1" (an early wiggle of the
-curve) beside neighbours at 30 to 150.  The global minimum within the cap is the same optimum where the curve is
+first rise of that MSE, which can be an early wiggle of the curve: a frame labelled "1" beside neighbours labelled
+tens of iterations or more.  The global minimum within the cap is the same optimum where the curve is
 unimodal and a stable label where it is not.  The reference is the noise-free
 star signal rendered over a vanishing exposure at mid-exposure (what the sensor would see without motion), in DN
 above the background, so the MSE weighs every pixel and the noise RL amplifies ends the useful iterations.  (A

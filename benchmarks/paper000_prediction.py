@@ -1,4 +1,4 @@
-"""Seed 000's star-spot prediction experiment (its Sec. 4.1, Table 1) on the bundled paper_000 scenario.
+"""Paper 000's star-spot prediction experiment (its Sec. 4.1, Table 1) on the bundled paper_000 scenario.
 
 Both predictors start from frame 1's true attitude and star positions (the paper predicts "based on the first frame
 star image") and then run on the gyro alone, with no further update, to frame 1500: 1499 frame intervals (14.99 s),
@@ -13,9 +13,9 @@ the true camera's projection at the true attitude, as the renderer computes ``xy
 frame 1500 (truth ``xy_mid``), which only the quaternion predictor follows (it adds catalog stars entering the field;
 the first-order model carries frame 1's stars only).  The environment is stepped with ``None`` actions; its truth is
 read only for the comparison.  Overrides: ``duration_s`` 15.01 (so that frame 1500 exists) and ``lost_after_steps``
-(no estimates are sent).  About 40 s.
+(no estimates are sent).
 
-    python benchmarks/seed000_prediction.py [--rate-dps R]
+    python benchmarks/paper000_prediction.py [--rate-dps R]
 
 ``--rate-dps R`` replaces the motion by R deg/s about each body axis; at 0.05 deg/s frame 1's stars stay in view, so
 both predictors are scored on stars seen on both frames, as in Table 1 (the paper's trajectory is only a figure).
@@ -105,7 +105,7 @@ def main() -> None:
     t0 = time.perf_counter()
     runs = {"scenario's": run({}), "noise-free": run(NOISE_FREE)}
     last_shared = runs["scenario's"][1]
-    print(f"seed 000 star-spot prediction on paper_000: gyro only from frame {START_FRAME} to frame {END_FRAME} "
+    print(f"paper 000 star-spot prediction on paper_000: gyro only from frame {START_FRAME} to frame {END_FRAME} "
           f"({(END_FRAME - START_FRAME) / 100:.2f} s), errors at frame {END_FRAME} in px (dx = true - predicted)")
     print(f"{'':29}{'frame-1 stars, extended plane':^34}{'stars in view on frame 1500':^34}  attitude")
     print(f"{'predictor':13}{'gyro':14}  {'n':>3}  {'max|dx|':>7}  {'max|dy|':>7}  {'mean':>7}"

@@ -1,4 +1,4 @@
-"""Seed 001's restoration result: star centroid error after deblurring at w_x = w_y = 1, 2, 4 deg/s, and time per
+"""Paper 001's restoration result: star centroid error after deblurring at w_x = w_y = 1, 2, 4 deg/s, and time per
 frame; the curvature-filter + centroid-stopped Richardson-Lucy restorer beside the Wiener baseline.
 
 Scenario ``paper_001`` (800 x 600, f 60 mm, 60 ms) with ``motion.rate_dps = [w, w, 0]``.  Per frame and restorer,
@@ -6,7 +6,7 @@ every detectable star whose trail is not saturated is centroided on the restored
 mass, pixels above 20 % of the window's peak over the frame's median, in an 11 x 11 px window about the true
 position: restoration is measured here, not detection) and compared with its true mid-exposure position (the
 kernels are centred on mid-exposure).  A star counts as failed when the window holds no restored peak above 5 noise
-sigmas of the restored frame or its error exceeds 2 px; failed stars are counted, not averaged.  The seed's method
+sigmas of the restored frame or its error exceeds 2 px; failed stars are counted, not averaged.  The paper's method
 is scored twice: on its restored image (the RL estimate, ``CurvatureRLDeblurrer.restore``: the paper's measure) and on
 the deblurrer's output (that estimate resharpened into the raw frame, what a pipeline's detector gets); both rows
 give the time of the two together.  The same restorer on patches around the candidate streaks (``region="streaks"``, the
@@ -14,7 +14,7 @@ real-time mode) is scored on its output.  The trail fit (``TrailFitDeblurrer``, 
 output the same way.  A second table splits the errors by the star's signal (electrons over the exposure), which is what
 decides whether a centroid reaches 0.1 px.
 
-    python benchmarks/seed001_restoration.py [--rates 1 2 4] [--frames 4] [--seed 1] [--min-electrons 0]
+    python benchmarks/paper001_restoration.py [--rates 1 2 4] [--frames 4] [--seed 1] [--min-electrons 0]
         [--pointing RA DEC]
 """
 
@@ -73,12 +73,12 @@ def run(rates, frames: int, seed: int, min_electrons: float = 0.0, pointing=None
         streaks = CurvatureRLDeblurrer(psf_sigma_px=sigma, region="streaks")
         trail_fit = TrailFitDeblurrer(psf_sigma_px=sigma)
 
-        def seed_method(image, step, curvature=curvature, sigma=sigma):
+        def paper_method(image, step, curvature=curvature, sigma=sigma):
             estimate, kernel = curvature.restore(image, 0, step)
             return {RESTORED: estimate, RESHARPENED: resharpen(image.astype(np.float64), estimate, kernel, sigma)}
 
         methods = [(wiener, lambda image, step, wiener=wiener: {WIENER: wiener.deblur(image, 0, step)}),
-                   (curvature, seed_method),
+                   (curvature, paper_method),
                    (streaks, lambda image, step, streaks=streaks: {STREAKS: streaks.deblur(image, 0, step)}),
                    (trail_fit, lambda image, step, trail_fit=trail_fit: {TRAIL_FIT: trail_fit.deblur(image, 0, step)})]
         names = (WIENER, RESTORED, RESHARPENED, STREAKS, TRAIL_FIT)

@@ -1,8 +1,8 @@
-"""Seed 004 reproduced: the multi-stage GRNN identifier of a three-head sensor, beside our lost-in-space and
-tracking identifiers on the same samples.  Prints the markdown tables of ``docs/seed004_identification.md`` and
+"""Paper 004 reproduced: the multi-stage GRNN identifier of a three-head sensor, beside our lost-in-space and
+tracking identifiers on the same samples.  Prints the markdown tables of ``docs/paper004_identification.md`` and
 writes the rho-sweep plot to ``--plot``::
 
-    python benchmarks/seed004_identification.py [--samples 1000] [--plot docs/seed004_rho_sweep.png]
+    python benchmarks/paper004_identification.py [--samples 1000] [--plot docs/paper004_rho_sweep.png]
 
 Samples are centroid sets (:mod:`starenv.datasets.star_fields`): the navigation stars (Hp <= 6.5) each head of
 ``paper_004`` sees at an attitude uniform on SO(3), with Gaussian centroid noise.  A head counts as right when it
@@ -201,7 +201,7 @@ def main(argv=None) -> None:
         for f, rates in sweep.items():
             ax.plot(rhos, rates, marker="o", ms=3, label=f"feature = {f}")
         ax.set(xlabel="smoothing factor rho (deg)", ylabel="held-out identification rate",
-               title="GRNN spread sweep (seed 004)")
+               title="GRNN spread sweep (paper 004)")
         ax.legend()
         fig.tight_layout()
         fig.savefig(args.plot, dpi=120)

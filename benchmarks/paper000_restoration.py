@@ -1,4 +1,4 @@
-"""Seed 000's restoration result: the highest angular rate at which attitude is still solved, per rotation axis,
+"""Paper 000's restoration result: the highest angular rate at which attitude is still solved, per rotation axis,
 from blurred frames and from frames restored by Richardson-Lucy with the EBPNN's iteration count.
 
 Scenario ``paper_000`` turning at a constant rate about one body axis (``motion.rate_dps``), the scenario's own
@@ -9,7 +9,7 @@ solved.  Like the paper's tables, the report gives the last working and the firs
 stops after two failing rates in a row.  ``--restored-threshold-sigma S`` adds a scan of the restored frames with
 the detector's threshold at S sigma (the scenario's detector uses 5; default 0: no such scan).
 
-    python benchmarks/seed000_restoration.py [--axes x y z] [--steps 4] [--seed 0] [--restored-threshold-sigma S]
+    python benchmarks/paper000_restoration.py [--axes x y z] [--steps 4] [--seed 0] [--restored-threshold-sigma S]
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""Seed 003's distortion correction reproduced and compared: ground training per distortion type, the baselines,
+"""Paper 003's distortion correction reproduced and compared: ground training per distortion type, the baselines,
 on-orbit online learning, the star-coverage rate and the corrector in the loop.
 
-Sections of ``docs/seed003_distortion.md``.  Ground (section 1): the camera of ``paper_003`` (2048^2, 20 deg,
+Sections of ``docs/paper003_distortion.md``.  Ground (section 1): the camera of ``paper_003`` (2048^2, 20 deg,
 magnitude 6.5) with each of the paper's six distortion presets, uncalibrated; ``--ground-frames`` frames of random
 sky (``starenv.datasets.pairs``), 0.05 px centroid noise, the stars split 8:2.  Residual = mean |corrected -
 reference| per axis on the test stars, evaluated at their noise-free distorted positions (the model's error, not the
@@ -22,7 +22,7 @@ In the loop (section 4): ``paper_003`` (``--loop-steps`` steps) and ``leo_distor
 run by the tracking pipeline without a corrector, with the RLS one and with the paper's Adam one, seed 0; medians over
 the steps after the first 5 (``paper_003``) or the first half (``leo_distortion``).
 
-    python benchmarks/seed003_distortion.py [--ground-frames 200] [--epochs 40] [--orbit-frames 3000]
+    python benchmarks/paper003_distortion.py [--ground-frames 200] [--epochs 40] [--orbit-frames 3000]
         [--coverage-starts 4] [--loop-steps 20] [--parts ground orbit coverage loop]
 """
 
@@ -37,12 +37,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from starenv import scenario as scenario_mod
+from starenv.agents.blocks import wahba_svd
 from starenv.agents.correct.baselines import PiecewiseLinearMap, PolynomialMap
 from starenv.agents.correct.ground import train_ground
 from starenv.agents.correct.legendre import LegendreCorrector, LegendreModel, fit_least_squares, learn_frame
-from starenv.agents.solve.solvers import wahba_svd
 from starenv.datasets.pairs import coverage, frame_pairs, orbit_pairs
-from starenv.sim.optics import SEED003_PRESETS
+from starenv.sim.optics import DISTORTION_PRESETS
 from starenv.sim.sky import load_catalog
 
 TARGET_PX = 0.04
@@ -63,7 +63,7 @@ def _residual(offset, dist: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
 
 def _ground_case(name: str, frames: int, epochs: int) -> tuple[list[str], dict[str, tuple[float, float]]]:
     """Table cells of one distortion type, and per method (fit time s, one frame's correction time s)."""
-    sc = scenario_mod.load("paper_003", {"heads.0.distortion": {"kind": "seed003", "preset": name}})
+    sc = scenario_mod.load("paper_003", {"heads.0.distortion": {"kind": "preset", "preset": name}})
     cam = sc.heads[0].calibrated
     parts = [frame_pairs(sc, 0, i) for i in range(frames)]
     frame_of = np.concatenate([np.full(len(p), i) for i, p in enumerate(parts)])
@@ -114,7 +114,7 @@ def ground(frames: int, epochs: int) -> None:
           "| polynomial (order 5) | PWL from one frame |")
     print("|---|---|---|---|---|---|---|---|")
     times: dict[str, list[tuple[float, float]]] = {}
-    for name in SEED003_PRESETS:
+    for name in DISTORTION_PRESETS:
         cells, case_times = _ground_case(name, frames, epochs)
         print("| " + " | ".join(cells) + " |")
         for label, v in case_times.items():

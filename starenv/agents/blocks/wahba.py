@@ -1,0 +1,49 @@
+"""Wahba's problem by the singular value decomposition: the attitude that best maps reference vectors onto measured
+ones."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def wahba_svd(body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Attitude matrix minimising Wahba's loss, by the SVD of the attitude profile matrix.
+
+    Parameters
+    ----------
+    body : (..., n, 3) ndarray
+        Measured directions, unit vectors in the body frame; row ``i`` is the same star as row ``i`` of
+        ``inertial``.  Leading axes hold independent problems, solved as one batch.
+    inertial : (..., n, 3) ndarray
+        Reference (catalogue) directions, unit vectors in ICRS.
+    weights : (..., n) ndarray, optional
+        Positive weight of each pair (only their ratios matter); equal weights if None.
+
+    Returns
+    -------
+    attitude : (..., 3, 3) ndarray
+        The rotation matrix ``A``, ICRS -> body (``b = A r``, :mod:`starenv.sim.conventions`), minimising
+        ``sum_i w_i |b_i - A r_i|^2``.  ``scipy.spatial.transform.Rotation.from_matrix`` turns it into a rotation.
+
+    Notes
+    -----
+    With the attitude profile matrix ``B = sum_i w_i b_i r_i^T = U S V^T``, the optimal attitude is
+    ``A = U diag(1, 1, d) V^T``, ``d = det(U V^T) = +-1``: the orthogonal matrix nearest ``B``, kept a proper rotation
+    (``d = -1`` flips the axis of the smallest singular value instead of reflecting) [1]_.  Here ``d`` scales U's last
+    column as computed, so its rounding (a few eps off +-1) is part of the result.  A problem gives the same bits
+    alone as in a batch.  The inputs are not checked: this is the inner loop of the identifiers and verifiers;
+    :class:`starenv.agents.solve.SvdSolver` checks them (shapes, unit length, observability) and calls this.  Fewer
+    than two non-parallel pairs leave the rotation about the common direction undetermined, and the result is one of
+    the minimisers.
+
+    References
+    ----------
+    .. [1] F. L. Markley, "Attitude determination using vector observations and the singular value decomposition",
+       Journal of the Astronautical Sciences 36(3), 245-258, 1988.
+    .. [2] G. Wahba, "A least squares estimate of satellite attitude", SIAM Review 7(3), 409, 1965.
+    """
+    if weights is not None:
+        body = body * weights[..., None]
+    u, _, vt = np.linalg.svd(np.swapaxes(body, -1, -2) @ inertial)
+    u[..., :, 2] *= np.linalg.det(u @ vt)[..., None]
+    return u @ vt

@@ -69,12 +69,13 @@ def test_wheel_carries_package_data(tmp_path):
             "starenv/agents/restore/iteration/iteration_net.npz",
             "starenv/agents/identify/weights/paper002_orion/weights.pt"} <= names
     assert not any(n.startswith(("tests/", "benchmarks/")) for n in names)
-    # installed from the wheel and run from another folder: every bundled id registers and a bundled env steps
+    # installed from the wheel and run from another folder: every bundled id (and StarEnv/Scenario-v0) registers and
+    # a bundled env steps
     site = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(site), str(wheel)],
                    check=True)
     code = (f"import gymnasium as gym, starenv; assert starenv.__file__.startswith({str(site)!r}); "
-            "ids = [i for i in gym.registry if i.startswith('StarEnv/')]; assert len(ids) == 9, ids; "
+            "ids = [i for i in gym.registry if i.startswith('StarEnv/')]; assert len(ids) == 10, ids; "
             "env = gym.make('StarEnv/Paper000-v0'); env.reset(seed=0); print('ok')")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(site)},
                          capture_output=True, text=True, check=True)

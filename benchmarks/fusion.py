@@ -115,8 +115,8 @@ def main_table(steps: int, seeds) -> None:
             records = []
             for seed in seeds:
                 records += episode(env, agents, opts, seed, steps)[0][5:]  # after the first fix
-            err, roll = values(records, "attitude_error_arcsec"), values(records, "roll_error_arcsec")
-            cross = values(records, "cross_boresight_error_arcsec")
+            err, roll = values(records, "attitude_error_arcsec"), values(records, "head0_error_roll_arcsec")
+            cross = values(records, "head0_cross_boresight_error_arcsec")
             available = np.mean([r["available"] for r in records])
             print(f"| {label} | {pipeline_name} | {np.median(err):.1f} | {np.percentile(err, 95):.1f} | "
                   f"{np.sqrt(np.mean(roll**2)):.1f} | {np.sqrt(np.mean(cross**2)):.1f} | {available:.2f} |")

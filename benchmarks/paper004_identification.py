@@ -155,7 +155,6 @@ def smeared_frames(rates_dps, steps: int) -> dict:
             options = {"identifier": {"feature": "sides"}} if name.startswith("GRNN") else {}
             pipeline = Pipeline.for_scenario(env.scenario, {"identifier": path}, options)
             records = run_episode(env, pipeline, seed=0, steps=steps).records
-            threshold = env.scenario.availability_threshold_arcsec
             def mean(key, records=records):
                 values = [r[key] for r in records if r[key] is not None]
                 return float(np.mean(values)) if values else float("nan")
@@ -163,7 +162,7 @@ def smeared_frames(rates_dps, steps: int) -> dict:
             out[(rate, name)] = (
                 mean("id_rate"),
                 mean("false_id_rate"),
-                float(np.mean([r["available"] == 1.0 and r["attitude_error_arcsec"] < threshold for r in records])),
+                mean("within_threshold"),  # available and within the scenario's threshold
             )
     return out
 

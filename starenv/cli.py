@@ -13,10 +13,27 @@ from pathlib import Path
 
 import numpy as np
 
+from starenv import metrics
 from starenv import scenario as scenario_mod
 
 TRUST_HELP = ("let agents ('module:Class' in the scenario, bench file or --agent) load from this module prefix outside "
               "starenv: its code will run (repeatable)")
+
+
+MAX_SET_DEPTH = 16  # lists / tables nested in one --set value (a scenario's deepest value is a matrix: 2)
+
+
+def _depth(value) -> int:
+    """How deeply lists and dicts nest in a JSON value (0 for a scalar), found without recursion."""
+    deepest, todo = 0, [(value, 0)]
+    while todo:
+        node, level = todo.pop()
+        if isinstance(node, list | dict):
+            deepest = max(deepest, level + 1)
+            if deepest > MAX_SET_DEPTH:
+                break
+            todo.extend((child, level + 1) for child in (node.values() if isinstance(node, dict) else node))
+    return deepest
 
 
 def _overrides(pairs: list[str]) -> dict:
@@ -26,11 +43,23 @@ def _overrides(pairs: list[str]) -> dict:
         key, sep, value = pair.partition("=")
         if not sep or not key:
             raise scenario_mod.ScenarioError(f"--set {pair!r}: expected KEY.PATH=VALUE, e.g. motion.rate_dps=[0,0,5]")
+        too_deep = scenario_mod.ScenarioError(f"--set {key}: lists and tables nested more than {MAX_SET_DEPTH} deep")
         try:
             out[key] = json.loads(value)
         except json.JSONDecodeError:
             out[key] = value
+        except RecursionError:  # nested beyond the JSON parser's own limit
+            raise too_deep from None
+        if _depth(out[key]) > MAX_SET_DEPTH:
+            raise too_deep
     return out
+
+
+def printable(text, limit: int = 1000) -> str:
+    """``text`` safe to print as one terminal line: control and format characters (escape sequences, line breaks,
+    bidirectional overrides) shown as Python escapes, cut to ``limit`` characters.  For text read from files."""
+    out = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in str(text)[: limit + 1])
+    return out if len(out) <= limit else out[:limit] + "..."
 
 
 def cmd_scenarios(args) -> int:
@@ -48,7 +77,7 @@ def _bounded(name: str, value: int | None, low: int, high: int, why: str) -> Non
 
 def _header(sc, overrides: dict) -> None:
     """The scenario's name and description, and the overrides that change it (the description is the file's)."""
-    print(f"{sc.name}: {sc.description}")
+    print(printable(f"{sc.name}: {sc.description}"))
     if overrides:
         print("  overrides: " + ", ".join(f"{k}={json.dumps(v)}" for k, v in overrides.items())
               + " (the description above is the file's)")
@@ -171,21 +200,55 @@ def cmd_run(args) -> int:
         print("  pipeline: none (every step unavailable)")
         return 0
     print("  pipeline: " + ", ".join(f"{r}={a}" for r, a in pipeline.describe().items() if a))
-    avail = summary.get("within_threshold", {}).get("mean", 0.0)
-    print(f"  availability (error < {sc.availability_threshold_arcsec:g} arcsec): {avail:.3f}")
-    for key, unit in (("attitude_error_arcsec", "arcsec"), ("cross_boresight_error_arcsec", "arcsec"),
-                      ("roll_error_arcsec", "arcsec"), ("centroid_error_px_mean", "px"), ("id_rate", ""),
-                      ("false_id_rate", ""), ("solved", ""), ("prediction_error_px_mean", "px"),
-                      ("restoration_centroid_error_blurred_px", "px"), ("restoration_centroid_error_px", "px"),
-                      ("restoration_stars_before", ""), ("restoration_stars_after", ""),
-                      ("restoration_psnr_gain_db", "dB"), ("restoration_iterations", "")):
+    _print_datasheet(sc, records)
+    cross = [f"head{h}_cross_boresight_error_arcsec" for h in range(len(sc.heads))]
+    for key in ("attitude_error_arcsec", *cross, "centroid_error_px_mean", "id_rate", "false_id_rate", "solved",
+                "prediction_error_px_mean", "restoration_centroid_error_blurred_px", "restoration_centroid_error_px",
+                "restoration_stars_before", "restoration_stars_after", "restoration_psnr_gain_db",
+                "restoration_iterations"):
         if key in summary:
             v = summary[key]
-            print(f"  {key:38s} median {v['median']:10.4g}  p95 {v['p95']:10.4g}  mean {v['mean']:10.4g} {unit}")
+            print(f"  {key:38s} median {v['median']:10.4g}  p95 {v['p95']:10.4g}  mean {v['mean']:10.4g} "
+                  f"{metrics.lookup(key).unit}")
     for key in sorted(k for k in summary if k.startswith("latency_")):
         v = summary[key]
-        print(f"  {key:38s} median {v['median']:10.3f}  p95 {v['p95']:10.3f} ms")
+        print(f"  {key:38s} median {v['median']:10.3f}  p95 {v['p95']:10.3f} {metrics.lookup(key).unit}")
     return 0
+
+
+def _axis_rows(n_heads: int) -> list[tuple[str, str]]:
+    """(row label, record key) of the run summary's per-axis table: each head's camera axes, then the body's."""
+    heads = [(f"head{h} {axis}", f"head{h}_error_{axis}_arcsec") for h in range(n_heads) for axis in ("x", "y", "roll")]
+    return heads + [(f"body {axis}", f"body_error_{axis}_arcsec") for axis in ("x", "y", "z")]
+
+
+def _print_datasheet(sc, records: list[dict]) -> None:
+    """One episode's figures in a star-tracker datasheet's terms (``starenv.datasheet``): availability with its
+    exact 95 % interval, acquisition and re-acquisition times, and per head (camera axes) and for the body the
+    bias, NEA and total 3 sigma of each axis's signed error."""
+    from starenv.datasheet import LEVEL, acquisition_times, binomial_interval, error_split
+
+    within = sum(r.get("within_threshold") == 1.0 for r in records)
+    low, high = binomial_interval(within, len(records))
+    print(f"  availability ({sc.availability_threshold_arcsec.describe()}): {within / len(records):.3f} "
+          f"({LEVEL:.0%} interval {low:.3f}-{high:.3f}, Clopper-Pearson over {len(records)} steps)")
+    times = acquisition_times([r.get("fixed") == 1.0 for r in records], [r["time_s"] for r in records])
+    reacquired = times["reacquisition"]
+    first = f"{times['first'][0]:.3g} s after the first frame" if times["first"] else "never (no fix in the episode)"
+    again = (f"{len(reacquired)}, median {np.median(reacquired):.3g} s, longest {max(reacquired):.3g} s" if reacquired
+             else "none")
+    print(f"  acquisition (to the first fix: solved and within the threshold): {first}; re-acquisitions after a "
+          f"loss of fix: {again}")
+    unit = metrics.lookup("body_error_x_arcsec").unit
+    estimated = sum(r.get("body_error_x_arcsec") is not None for r in records)
+    print(f"  per-axis error, {unit}, signed, over the {estimated} steps with an estimate (the ECSS-E-ST-60-20C split "
+          "of starenv.datasheet):")
+    print("    bias = mean; NEA = deviation of frame-to-frame differences / sqrt(2); total 3 sigma = 3 x RMS; a head's "
+          "camera x, y (across its boresight) and roll, the body's x, y, z")
+    print(f"    {'axis':12s}{'bias':>12s}{'NEA':>12s}{'total 3 sigma':>15s}")
+    for label, key in _axis_rows(len(sc.heads)):
+        split = error_split(np.array([math.nan if r.get(key) is None else r[key] for r in records]))
+        print(f"    {label:12s}{split['bias']:12.4g}{split['nea']:12.4g}{split['total_3s']:15.4g}")
 
 
 def cmd_view(args) -> int:
@@ -194,7 +257,7 @@ def cmd_view(args) -> int:
     import subprocess
     import tempfile
 
-    from starenv.record.mcap import is_finished, read_metadata, recover
+    from starenv.record.mcap import is_finished, read_metadata, recover, reproduce_command, run_info
     from starenv.record.rerun import analytics_off, mcap_to_rrd
 
     analytics_off()
@@ -209,16 +272,18 @@ def cmd_view(args) -> int:
             print(f"{mcap_path} is unfinished: reviewing its {steps} complete steps, up to its last complete chunk "
                   f"(starenv recover {mcap_path} writes them as a finished MCAP)")
             mcap_path = finished
-        meta = read_metadata(mcap_path)
-        total = meta.get("starenv.outcome", {}).get("steps")
-        with _progress(int(total) if total else None, "building the review", args.quiet) as bar:
+        info = run_info(read_metadata(mcap_path), mcap_path)
+        with _progress(info.get("steps"), "building the review", args.quiet) as bar:
             mcap_to_rrd(mcap_path, rrd, on_step=bar.update)
-    run, outcome = meta["starenv.run"], meta.get("starenv.outcome", {})
-    print(f"{meta['starenv.scenario']['name']}, seed {run['seed']}: {outcome.get('steps', '?')} steps, "
-          f"{outcome.get('status', 'unfinished')}{': ' + outcome['error'] if outcome.get('error') else ''}")
-    if outcome.get("reproduce"):
-        print(f"  reproduce: {outcome['reproduce']}  (starenv export {mcap_path} --scenario scenario.toml writes it)")
-    print(f"wrote {rrd}")
+    # the file's text made printable; the reproduce command rebuilt from its checked numbers and agent names, never
+    # the file's own text
+    print(printable(f"{info['name']}, seed {info['seed']}: {info.get('steps', '?')} steps, "
+                    f"{info.get('status', 'unfinished')}{': ' + info['error'] if info.get('error') else ''}"))
+    if "steps" in info:
+        command = reproduce_command("scenario.toml", info["seed"], info["steps"], info["agents"])
+        print(printable(f"  reproduce: {command}  (starenv export {args.recording} --scenario scenario.toml writes "
+                        f"it)"))
+    print(printable(f"wrote {rrd}"))
     if not args.rrd and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         viewer = shutil.which("rerun")
         if viewer is None:
@@ -230,20 +295,18 @@ def cmd_view(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from starenv.record.mcap import read_metadata
+    from starenv.files import atomic_file
+    from starenv.record.mcap import read_metadata, reproduce_command, run_info
 
-    meta = read_metadata(args.recording)
+    info = run_info(read_metadata(args.recording), args.recording)
     out = Path(args.scenario)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(meta["starenv.scenario"]["toml"], encoding="utf-8")
-    print(f"wrote {out} (the scenario of {args.recording}, overrides applied)")
-    reproduce = meta.get("starenv.outcome", {}).get("reproduce")
-    if reproduce:
-        import shlex
-
-        words = shlex.split(reproduce)
-        words[2] = str(out)  # ``starenv run SCENARIO ...``: the file just written
-        print(f"  reproduce: {shlex.join(words)}")
+    if out.exists() and not out.is_symlink() and not args.force:
+        raise FileExistsError(f"--scenario {out} exists; --force replaces it")
+    with atomic_file(out, "w", encoding="utf-8", replace=args.force) as f:  # refuses a symbolic link, even forced
+        f.write(info["toml"])
+    print(printable(f"wrote {out} (the scenario of {args.recording}, overrides applied)"))
+    if "steps" in info:  # rebuilt from the checked metadata, never the file's own text
+        print(printable(f"  reproduce: {reproduce_command(str(out), info['seed'], info['steps'], info['agents'])}"))
     return 0
 
 
@@ -254,10 +317,10 @@ def cmd_recover(args) -> int:
     if not partial.name.endswith(".partial"):
         raise ValueError(f"recover: expected an unfinished recording FILE.mcap.partial, got {str(partial)!r}")
     out = Path(args.out) if args.out else partial.with_name(partial.name.removesuffix(".partial"))
-    if out.exists() and not args.out:
-        raise ValueError(f"recover: {out} exists; name another output with --out")
-    steps = recover(partial, out)
-    print(f"wrote {out}: {steps} complete steps recovered from {partial}")
+    if (out.exists() or out.is_symlink()) and not args.force:
+        raise ValueError(f"recover: {out} exists; name another output with --out, or replace it with --force")
+    steps = recover(partial, out, replace=args.force)
+    print(printable(f"wrote {out}: {steps} complete steps recovered from {partial}"))
     return 0
 
 
@@ -271,14 +334,15 @@ def cmd_bench(args) -> int:
     for module in ("tqdm", "matplotlib"):
         if importlib.util.find_spec(module) is None:  # fail before the runs, not at the report after them
             raise ValueError(f"starenv bench needs {module} (the 'report' extra: pip install 'starenv[report]')")
-    bench = load_bench(args.bench, trust=tuple(args.trust))
+    bench = load_bench(args.bench, trust=tuple(args.trust), seeds=args.seeds)
     check_writable(Path(args.out))
     if args.jobs is not None and args.jobs < 1:
         raise ValueError(f"--jobs: expected an integer >= 1, got {args.jobs}")
     print(f"{bench.name}: {len(bench.runs)} runs, {sum(r.steps for r in bench.runs)} steps, from {bench.source}")
     files = run_bench(bench, args.out, jobs=args.jobs, use_ray=args.ray is not None, ray_address=args.ray or None,
                       progress=not args.quiet)
-    report = write_report(bench, files, Path(args.out))
+    # the report's figures fork processes: not from a driver whose Ray threads are running
+    report = write_report(bench, files, Path(args.out), jobs=1 if args.ray is not None else args.jobs)
     print(f"report: {report}")
     return 0
 
@@ -296,20 +360,41 @@ def cmd_dataset(args) -> int:
     return 0
 
 
+# Errors that an input (a file, an option, a folder) causes: one line, exit status 2.
+INPUT_ERRORS = (scenario_mod.ScenarioError, ValueError, OSError, ModuleNotFoundError, RecursionError, MemoryError)
+
+
+def _fail(prog: str, exc: BaseException, debug: bool) -> int:
+    """Report ``exc`` on one line (the traceback first with ``--debug``); the exit status."""
+    if debug:
+        import traceback
+
+        traceback.print_exception(exc)
+    if isinstance(exc, INPUT_ERRORS):
+        text = f"nested too deeply ({exc})" if isinstance(exc, RecursionError) else str(exc)
+        print(f"{prog}: error: {printable(text)}", file=sys.stderr)
+        return 2
+    hint = "" if debug else " (starenv --debug ... shows the traceback)"
+    print(f"{prog}: error: unexpected {type(exc).__name__}: {printable(exc, 300)}{hint}", file=sys.stderr)
+    return 1
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    argv = sys.argv[1:] if argv is None else list(argv)
+    debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
     if argv[:1] == ["train"]:  # its own parser, in a module that imports torch (as the learned agents' modules do)
         from starenv.agents.identify.network_train import main as train_main
 
         try:
             return train_main(argv[1:])
-        except (ValueError, OSError) as exc:
-            print(f"starenv train: error: {exc}", file=sys.stderr)
-            return 2
+        except Exception as exc:  # noqa: BLE001  (one line; --debug shows the traceback)
+            return _fail("starenv train", exc, debug)
     import starenv
 
     parser = argparse.ArgumentParser(prog="starenv", description="Star sensor simulator under dynamic conditions")
     parser.add_argument("--version", action="version", version=f"starenv {starenv.__version__}")
+    parser.add_argument("--debug", action="store_true", help="on an error, print its traceback too (any position)")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("scenarios", help="list the bundled scenarios").set_defaults(fn=cmd_scenarios)
     p = sub.add_parser("render", help="render one frame of a scenario: a PNG with truth, 16-bit FITS or npz")
@@ -344,6 +429,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("recording", help="an MCAP file written by starenv run --record")
     p.add_argument("--scenario", default="scenario.toml", metavar="FILE.toml",
                    help="where to write the scenario (default scenario.toml, the name the reproduce command uses)")
+    p.add_argument("--force", action="store_true", help="replace an existing --scenario file")
     p.set_defaults(fn=cmd_export)
     p = sub.add_parser("view", help="review an MCAP recording in Rerun (opens the viewer when a display exists)")
     p.add_argument("recording", help="an MCAP file written by starenv run --record (or the FILE.mcap.partial of a "
@@ -356,11 +442,17 @@ def main(argv: list[str] | None = None) -> int:
                                        "steps")
     p.add_argument("partial", help="FILE.mcap.partial")
     p.add_argument("--out", default=None, metavar="FILE.mcap", help="output (default: FILE.mcap, if it does not exist)")
+    p.add_argument("--force", action="store_true", help="replace an existing output")
     p.set_defaults(fn=cmd_recover)
     p = sub.add_parser("bench", help="run a benchmark (scenarios x pipelines x seeds, sweeps) and write a report")
     p.add_argument("bench", help="bench file (.toml) or bundled bench name (e.g. bundled)")
-    p.add_argument("--out", required=True, help="output folder (runs/, summary tables, plots/, report.md)")
-    p.add_argument("--jobs", type=int, default=None, help="local worker processes (default: the CPU count)")
+    p.add_argument("--out", required=True,
+                   help="output folder (runs/, summary tables, datasheet.csv, plots/, report.md)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="local worker processes for the runs and the report's figures (default: the CPU count)")
+    p.add_argument("--seeds", type=int, default=None, metavar="N",
+                   help="run every group with the seeds 0 .. N-1 (N >= 1), replacing the file's seeds: more runs per "
+                        "case, narrower 95 %% intervals")
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
                    help="run on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -378,9 +470,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.fn(args)
-    except (scenario_mod.ScenarioError, ValueError, OSError, ModuleNotFoundError) as exc:
-        print(f"starenv: error: {exc}", file=sys.stderr)
-        return 2
+    except Exception as exc:  # noqa: BLE001  (one line; --debug shows the traceback)
+        return _fail("starenv", exc, debug)
 
 
 if __name__ == "__main__":

@@ -26,11 +26,12 @@ detection's direction); ``predicted_xy``
 ``ValueError`` naming the key.  Vector environments batch every key: start from :meth:`StarSensorEnv.null_action`.
 
 Reward: ``max(0, 1 - error / threshold)`` for an available estimate (1 when exact, 0 at or beyond the scenario's
-``availability_threshold_arcsec``), 0 when unavailable.  ``terminated`` once ``lost_after_steps`` consecutive steps
-had no available estimate within the threshold ("lost"); ``truncated`` after the scenario's last frame (the bundled
-ids register the same count as ``max_episode_steps``: ``n_steps - 1`` steps).  A lost episode may still be stepped
-(benchmarks score whole episodes); stepping after ``truncated`` raises ``gymnasium.error.ResetNeeded``: there is no
-next frame.  ``reset(seed=...)`` takes a Python or numpy integer in [0, 2**63); ``reset`` takes no options
+``availability_threshold_arcsec``; with a per-axis threshold the largest of every head's cross-boresight and roll error
+over its bound), 0 when unavailable.  ``terminated`` once ``lost_after_steps`` consecutive steps had no available
+estimate within the threshold ("lost", ``scores["within_threshold"]`` false); ``truncated`` after the scenario's last
+frame (the bundled ids register the same count as ``max_episode_steps``: ``n_steps - 1`` steps).  A lost episode may
+still be stepped (benchmarks score whole episodes); stepping after ``truncated`` raises ``gymnasium.error.ResetNeeded``:
+there is no next frame.  ``reset(seed=...)`` takes a Python or numpy integer in [0, 2**63); ``reset`` takes no options
 (``options`` must be None or empty: anything else raises ``ValueError`` rather than being ignored).
 
 Prefetch.  ``prefetch=True`` simulates the next frame on a background thread as soon as a step (or ``reset``)
@@ -55,10 +56,14 @@ Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
   arrays, one row per star on the frame: ``catalog_id`` (HIP number), ``magnitude`` (Hipparcos Hp), ``xy_mid`` /
   ``xy_centroid`` / ``xy_start`` / ``xy_end`` (n, 2) px (distorted pixel coordinates; mid-exposure position, trail
   centroid, trail ends), ``electrons`` and ``peak_electrons`` (e-; total and brightest pixel), ``detectable`` bool.
-* ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int, the
-  step's scores, ``attitude`` (empty when unavailable, so that vector envs can merge the infos) with its ``heads``
-  (one dict per head: the error rotation in that head's camera frame) and ``heads`` (one dict per head: star-level
-  scores, None where the action gave nothing to score; correction scores need the action's ``corrected_xy``).
+* ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int and
+  ``time_s`` float (s, that frame's mid-exposure time), the step's scores, ``attitude`` (empty when unavailable, so
+  that vector envs can merge the infos) holding the error's ``body`` (its signed components about the body axes)
+  and ``heads`` (one dict per head: its signed components about that head's camera axes), and ``heads`` (one dict
+  per head: star-level scores, None where the action gave nothing to score; correction scores need the action's
+  ``corrected_xy``).  Signs: the error rotation is ``estimate x truth^-1`` (ICRS -> body attitudes), its
+  rotation vector ``e`` (body frame) gives ``body``, and ``M e`` (``M``: the head's body -> camera mounting) a
+  head's: an estimate ``Rotation.from_rotvec(a * u) * truth`` scores ``+a`` about the unit axis ``u``.
   Every score, with its unit, in the table below, composed from ``starenv.metrics`` when this module is imported
   (``python -m starenv.metrics`` prints it):
 
@@ -78,7 +83,7 @@ from gymnasium import spaces
 from starenv import metrics
 from starenv import scenario as scenario_mod
 from starenv.agents.base import MAX_STARS, SensorInfo
-from starenv.scoring import score_step
+from starenv.scoring import score_step, threshold_errors
 from starenv.sim.sensor import Frame, StarSensor
 
 GYRO_RATE_BOUND = math.radians(3600.0)  # rad/s, the observation space's bound on each gyro rate component
@@ -208,10 +213,11 @@ class StarSensorEnv(gym.Env):
                                         "call reset() before step()")
         parsed = parse_action(action, len(self.scenario.heads))
         scores = score_step(parsed, self._frame, self.scenario)
-        threshold = self.scenario.availability_threshold_arcsec
-        error = scores["attitude"]["total_arcsec"] if scores["available"] else math.inf
-        reward = max(0.0, 1.0 - error / threshold) if scores["available"] else 0.0
-        self._lost_steps = 0 if error < threshold else self._lost_steps + 1
+        reward = 0.0
+        if scores["available"]:
+            errors = threshold_errors(scores["attitude"], self.scenario.availability_threshold_arcsec)
+            reward = max(0.0, 1.0 - max(e / bound for e, bound in errors))
+        self._lost_steps = 0 if scores["within_threshold"] else self._lost_steps + 1
         self._steps += 1
         terminated = self._lost_steps >= self.scenario.lost_after_steps
         truncated = self._steps >= self.scenario.n_steps - 1

@@ -3,11 +3,12 @@
 ``run_episode`` is the loop every front end shares (``starenv run``, the benchmark runner, recorders): per step ``k``
 the pipeline turns observation ``k`` into an action, ``env.step`` scores it against frame ``k``'s truth, and each
 observer receives a :class:`StepLog` that holds frame ``k``, its truth, the action and its scores together.  Its flat
-record (:func:`starenv.scoring.flatten`) holds every metric of ``starenv.metrics``: the env's scores pooled over
-heads, the agents' latencies, and, when the pipeline has a deblurrer, the restoration scores of frame ``k``, when it
-is a filter, its bias and NEES against frame ``k``'s truth.  The table below, composed from ``starenv.metrics`` when
-this module is imported (``python -m starenv.metrics`` prints it), lists every record key with its unit, where it
-comes from, its ``summary.csv`` columns and its Rerun panel:
+record (:func:`starenv.scoring.flatten`), indexed by ``frame`` and ``time_s`` (frame ``k``'s index and mid-exposure
+simulation time, s; ``starenv.metrics.INDEX_KEYS``), holds every metric of ``starenv.metrics``: the env's scores
+pooled over heads, the agents' latencies, and, when the pipeline has a deblurrer, the restoration scores of frame
+``k``, when it is a filter, its bias and NEES against frame ``k``'s truth.  The table below, composed from
+``starenv.metrics`` when this module is imported (``python -m starenv.metrics`` prints it), lists every record key
+with its unit, where it comes from, its ``summary.csv`` columns and its Rerun panel:
 
 """
 

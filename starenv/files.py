@@ -1,6 +1,8 @@
-"""Files written whole or not at all: a temporary file beside the target, flushed and synced, then moved into place
-with ``os.replace`` (atomic on one file system), removed instead when writing fails.  A reader -- a resumed bench,
-a dataset build, a catalogue cache -- never sees half a file."""
+"""Files written whole or not at all: a temporary file beside the target, created exclusively under a unique name
+(``tempfile.mkstemp``: ``O_EXCL``, so a file or symbolic link someone prepared there is never opened), flushed and
+synced, then moved into place with ``os.replace`` (atomic on one file system), removed instead when writing fails.
+A reader -- a resumed bench, a dataset build, a catalogue cache -- never sees half a file.  A symbolic link at the
+target is refused rather than replaced, and ``replace=False`` keeps an existing target."""
 
 from __future__ import annotations
 
@@ -13,10 +15,14 @@ from typing import IO
 
 
 @contextmanager
-def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None = None) -> Iterator[IO]:
+def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None = None, *,
+                replace: bool = True) -> Iterator[IO]:
     """Open a temporary file in ``path``'s folder (created if missing) for writing; on a clean exit it replaces
-    ``path``, on an exception it is removed and the exception propagates."""
+    ``path``, on an exception it is removed and the exception propagates.  A symbolic link at ``path`` is a
+    FileExistsError (before anything is written); so is an existing ``path`` when ``replace`` is False (checked
+    again, atomically, when the file is moved into place: a hard link that fails if the name exists)."""
     path = Path(path)
+    _check_target(path, replace)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -24,7 +30,31 @@ def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None 
             yield f
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        if replace:
+            _check_target(path, replace)
+            os.replace(tmp, path)
+        else:
+            _publish_new(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _check_target(path: Path, replace: bool) -> None:
+    if path.is_symlink():
+        raise FileExistsError(f"{path}: a symbolic link; refusing to write through or replace it (remove it first)")
+    if not replace and path.exists():
+        raise FileExistsError(f"{path} exists; refusing to replace it")
+
+
+def _publish_new(tmp: str, path: Path) -> None:
+    """Move ``tmp`` to ``path`` only if nothing is there (a hard link fails if the name exists, even as a link)."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(f"{path} exists; refusing to replace it") from None
+    except OSError:  # a file system without hard links: check, then move (a race remains there)
+        _check_target(path, replace=False)
+        os.replace(tmp, path)
+        return
+    os.unlink(tmp)

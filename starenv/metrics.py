@@ -32,7 +32,9 @@ import numpy as np
 from starenv.sim.conventions import ARCSEC_PER_RAD
 
 SOLVED_MIN_CORRECT = 3  # a frame is solved with this many correct ids and none wrong
-INDEX_KEYS = ("frame", "step")  # keys of a flat record that index it rather than measure
+# keys of a flat record that index it rather than measure: the scored frame's index and mid-exposure simulation time
+# (s), and a run file's step
+INDEX_KEYS = ("frame", "time_s", "step")
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,7 @@ SCOPES = {
     "step": Scope("scores", "`starenv.scoring.StepFrame`: the estimate, the attitude scores, the threshold"),
     "attitude": Scope("scores.attitude", "the error rotation vector of `R_est R_true^T` (rad, body frame); "
                       "available steps only"),
+    "body_attitude": Scope("scores.attitude.body", "the error rotation vector (arcsec, body frame)"),
     "head_attitude": Scope("scores.attitude.heads[h]", "the error rotation vector in head h's camera frame (arcsec)",
                            per_head=True),
     "head": Scope("scores.heads[h]", "`starenv.scoring.HeadFrame`: head h's truth and the action's star lists",
@@ -75,6 +78,8 @@ class Statistic:
 STATISTICS = {
     "share": Statistic("", "share of steps where it holds (0-1)", lambda v: float(v.mean())),
     "mean": Statistic("_mean", "mean", lambda v: float(v.mean())),
+    "rms": Statistic("_rms", "root mean square (of a signed error: bias included, the total 1 sigma of "
+                     "`starenv.datasheet`)", lambda v: float(np.sqrt(np.mean(v * v)))),
     "median": Statistic("_median", "median", lambda v: float(np.median(v))),
     "p95": Statistic("_p95", "95th percentile (linear interpolation)", lambda v: float(np.percentile(v, 95))),
 }
@@ -99,21 +104,21 @@ POOLS = {
 
 @dataclass(frozen=True)
 class Group:
-    """A Rerun time-series panel (``metrics/{group}``), one unit per panel; ``filter_only``: laid out only for a
-    pipeline with a fusion filter."""
+    """A Rerun time-series panel (``metrics/{group}``), laid out only when a run's record holds one of its keys: one
+    per head for per-head metrics, one per unit (``{unit}`` in the title names it), flags (``0/1``) on the status
+    timeline instead (``starenv.record.rerun``)."""
 
     title: str
-    filter_only: bool = False
 
 
 GROUPS = {
-    "attitude": Group("attitude error (arcsec)"),
-    "per_head": Group("attitude error per head (arcsec, about camera axes)"),
-    "share": Group("shares and flags (0-1)"),
+    "attitude": Group("attitude error (arcsec): angle grey; about body x y z red green blue, signed"),
+    "per_head": Group("error (arcsec) about camera x y roll: red green blue, signed; across the boresight: grey"),
+    "share": Group("shares (0-1)"),
     "px": Group("position errors (px)"),
     "count": Group("counts"),
     "gain": Group("restoration gain (dB)"),
-    "filter": Group("filter against truth (bias deg/h, NEES)", filter_only=True),
+    "filter": Group("filter against truth ({unit})"),
     "latency": Group("latency per agent role (ms)"),
 }
 UNITLESS = ("0-1", "0/1", "count", "")  # units a report heading leaves out
@@ -184,31 +189,39 @@ def _norm_mean(xy: np.ndarray | None) -> float | None:
 
 
 SHARE, PX, ARCSEC = ("share",), "px", "arcsec"
+SIGNED = ("mean", "rms")  # a signed error's bias and total 1 sigma
 
 # Descriptions are Markdown (the tables are).  Declaration order is the order of the typed fields in recordings (per
 # scope) and of the report's columns.
 METRICS: tuple[Metric, ...] = (
     Metric("available", "0/1", "an attitude was given (`attitude_valid = 1`)", "share", SHARE, "step",
            lambda s: s.estimate is not None, dtype=bool),
-    Metric("within_threshold", "0/1", "available, with a total error under the scenario's "
-           "`availability_threshold_arcsec`", "share", SHARE, "step",
-           lambda s: bool(s.estimate is not None and s.attitude["total_arcsec"] < s.threshold), dtype=bool,
-           label="availability"),
+    Metric("within_threshold", "0/1", "available, with the error under the scenario's "
+           "`availability_threshold_arcsec`: one number bounds the total angle; a table `{cross_boresight, roll}` "
+           "bounds every head's cross-boresight error and the size of its roll error", "share", SHARE, "step",
+           lambda s: s.estimate is not None and s.within, dtype=bool, label="availability"),
     Metric("fixed", "0/1", "the frame's own stars solved it (`solved`) and the attitude is within the threshold; "
            "availability also counts an attitude a predictor or filter carried through", "share", SHARE, "record",
            lambda r: None if r.get("within_threshold") is None or r.get("solved") is None
            else float(r["within_threshold"] == 1.0 and r["solved"] == 1.0), label="fixed"),
     Metric("attitude_error_arcsec", ARCSEC, "angle of `R_est R_true^T`", "attitude", MEDIAN_P95, "attitude",
            lambda e: float(np.linalg.norm(e) * ARCSEC_PER_RAD), field="total_arcsec", label="att. err."),
-    Metric("head{head}_pitch_error_arcsec", ARCSEC, "error about the head's camera +X, absolute", "per_head",
-           MEDIAN_P95, "head_attitude", lambda e: float(abs(e[0])), field="pitch_arcsec", pool="each"),
-    Metric("head{head}_yaw_error_arcsec", ARCSEC, "error about the head's camera +Y, absolute", "per_head",
-           MEDIAN_P95, "head_attitude", lambda e: float(abs(e[1])), field="yaw_arcsec", pool="each"),
-    Metric("roll_error_arcsec", ARCSEC, "error about the boresight (camera +Z), absolute", "attitude", MEDIAN_P95,
-           "head_attitude", lambda e: float(abs(e[2])), field="roll_arcsec", label="roll"),
-    Metric("cross_boresight_error_arcsec", ARCSEC, "error across the boresight, `hypot` of pitch and yaw",
-           "attitude", MEDIAN_P95, "head_attitude", lambda e: float(np.hypot(e[0], e[1])),
-           field="cross_boresight_arcsec", label="cross-bore."),
+    Metric("body_error_x_arcsec", ARCSEC, "error about body +X, signed: the error rotation vector's component "
+           "(signs: `starenv.scoring`)", "attitude", SIGNED, "body_attitude", lambda e: float(e[0]), field="x_arcsec"),
+    Metric("body_error_y_arcsec", ARCSEC, "error about body +Y, signed", "attitude", SIGNED, "body_attitude",
+           lambda e: float(e[1]), field="y_arcsec"),
+    Metric("body_error_z_arcsec", ARCSEC, "error about body +Z, signed", "attitude", SIGNED, "body_attitude",
+           lambda e: float(e[2]), field="z_arcsec"),
+    Metric("head{head}_error_x_arcsec", ARCSEC, "error about the head's camera +X, signed (cross-boresight)",
+           "per_head", SIGNED, "head_attitude", lambda e: float(e[0]), field="x_arcsec", pool="each"),
+    Metric("head{head}_error_y_arcsec", ARCSEC, "error about the head's camera +Y, signed (cross-boresight)",
+           "per_head", SIGNED, "head_attitude", lambda e: float(e[1]), field="y_arcsec", pool="each"),
+    Metric("head{head}_error_roll_arcsec", ARCSEC, "error about the head's boresight (camera +Z), signed", "per_head",
+           SIGNED, "head_attitude", lambda e: float(e[2]), field="roll_arcsec", pool="each", label="roll h{head}",
+           shown=("rms",)),
+    Metric("head{head}_cross_boresight_error_arcsec", ARCSEC, "error across the head's boresight, `hypot` of x and y",
+           "per_head", MEDIAN_P95, "head_attitude", lambda e: float(np.hypot(e[0], e[1])),
+           field="cross_boresight_arcsec", pool="each", label="cross-bore. h{head}"),
     Metric("centroid_error_px_mean", PX, "mean distance of the detections matched one-to-one to true trail "
            "centroids within the 3 px gate", "px", MEDIAN_P95, "head", lambda f: _mean(f.matched and f.matched.px),
            label="centroid"),
@@ -358,7 +371,7 @@ def _row(cells: list[str]) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
-INFO_SCOPES = ("step", "attitude", "head_attitude", "head")
+INFO_SCOPES = ("step", "attitude", "body_attitude", "head_attitude", "head")
 
 
 def info_table() -> str:

@@ -13,7 +13,8 @@ data: the only code it can name is an agent class in ``[pipeline]``, loaded unde
 Layout (see the bundled files in ``scenarios/`` for complete, commented examples)::
 
     name, description, seed, duration_s, frame_rate_hz, exposure_s, mag_limit, epoch,
-    sky_mag_per_arcsec2, lost_after_steps, availability_threshold_arcsec
+    sky_mag_per_arcsec2, lost_after_steps,
+    availability_threshold_arcsec = number (total angle) | {cross_boresight = ..., roll = ...} (per axis, per head)
     [motion]        kind = constant_rate | slew | tumble | coning | leo_nadir | sequence, with its keys,
                     initial_ra_deg / initial_dec_deg / initial_roll_deg (boresight of head 0 and its roll),
                     optional [motion.jitter] superposed on any kind
@@ -109,7 +110,10 @@ DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre", "radial", 
 RENAMED_DISTORTION_KINDS = {"seed003": "preset"}  # former kind -> its name now (its other keys are unchanged)
 
 
-def _distortion(tbl: Table | None) -> Distortion:
+MAX_COMPOSITE_DEPTH = 8  # composite distortions inside composites (each level one Python call deeper)
+
+
+def _distortion(tbl: Table | None, depth: int = 0) -> Distortion:
     """A ``[heads.distortion]`` table.  Paper 003's types (``radial`` q1, q2; ``tangential`` p1, p2; ``thin_prism``
     s1, s2; ``shear`` phi_x_deg, phi_y_deg; ``perspective`` h = [h11, h12, h13, h21, h22, h23, h31, h32]) take
     normalised coefficients (focal plane over half the sensor width); kind ``preset`` names one of
@@ -145,7 +149,9 @@ def _distortion(tbl: Table | None) -> Distortion:
     elif kind == "preset":
         model = DISTORTION_PRESETS[tbl.string("preset", choices=tuple(DISTORTION_PRESETS))]
     else:
-        models = [_distortion(t) for t in tbl.tables("models")]
+        if depth >= MAX_COMPOSITE_DEPTH:
+            tbl.fail("models", f"composite models nested at most {MAX_COMPOSITE_DEPTH} deep", "deeper")
+        models = [_distortion(t, depth + 1) for t in tbl.tables("models")]
         model = tbl.build("distortion", Composite, tuple(models))
     tbl.finish()
     return model
@@ -398,6 +404,41 @@ def _check_bounds(source: str, duration: float, frame_rate: float, exposure: flo
                 f"{stars} stars x {instants} instants on heads.{i}: lower mag_limit, the field or the trail length")
 
 
+THRESHOLD_AXES = ("cross_boresight", "roll")  # the axes of a per-axis availability threshold, all required
+
+
+@dataclass(frozen=True)
+class AvailabilityThreshold:
+    """``availability_threshold_arcsec``: a step's attitude is within it when its total error angle is under
+    ``total_arcsec`` (a number in the file) or, per axis (a table; ``total_arcsec`` None), when every head's
+    cross-boresight error is under ``cross_boresight_arcsec`` and the size of its roll error under ``roll_arcsec``
+    (``starenv.scoring.threshold_errors``)."""
+
+    total_arcsec: float | None = None
+    cross_boresight_arcsec: float | None = None
+    roll_arcsec: float | None = None
+
+    def describe(self) -> str:
+        """The condition in words, for summaries."""
+        if self.total_arcsec is not None:
+            return f"total error < {self.total_arcsec:g} arcsec"
+        return (f"every head's cross-boresight error < {self.cross_boresight_arcsec:g} arcsec and |roll error| < "
+                f"{self.roll_arcsec:g} arcsec")
+
+
+def _availability_threshold(top: Table) -> AvailabilityThreshold:
+    """``availability_threshold_arcsec``: a number in (0, 1e6] (default 60), or a table of every axis of
+    :data:`THRESHOLD_AXES`, each such a number."""
+    key, low, high = "availability_threshold_arcsec", 0.0, 1e6
+    if not isinstance(top.data.get(key), dict):
+        return AvailabilityThreshold(total_arcsec=float(top.number(key, 60.0, low=low, high=high, low_open=True)))
+    tbl = top.table(key)
+    tbl.used.update(THRESHOLD_AXES)
+    tbl.finish()  # an unknown axis first: it may be a misspelt required one
+    axes = {axis: tbl.number(axis, low=low, high=high, low_open=True) for axis in THRESHOLD_AXES}
+    return AvailabilityThreshold(cross_boresight_arcsec=float(axes["cross_boresight"]), roll_arcsec=float(axes["roll"]))
+
+
 @dataclass
 class Scenario:
     """A validated mission: timing, motion, gyro, drops and camera heads, plus its source for reproduction."""
@@ -412,7 +453,7 @@ class Scenario:
     epoch: float
     sky_mag_per_arcsec2: float
     lost_after_steps: int
-    availability_threshold_arcsec: float
+    availability_threshold_arcsec: AvailabilityThreshold
     trajectory: Trajectory
     gyro: GyroSpec
     drops: DropModel
@@ -484,7 +525,7 @@ def load(scenario: str | Path | dict, overrides: dict[str, Any] | None = None) -
     epoch = top.number("epoch", 2026.0, low=1900.0, high=2100.0)
     sky = top.number("sky_mag_per_arcsec2", 22.0, low=10.0, high=30.0)
     lost_after = top.number("lost_after_steps", 10, low=1, high=10**9, integer=True)
-    avail = top.number("availability_threshold_arcsec", 60.0, low=0.0, high=1e6, low_open=True)
+    avail = _availability_threshold(top)
     heads = [_head(t, i) for i, t in enumerate(top.tables("heads"))]
     for h in heads:
         span = frame_span_s(exposure, h.detector.line_time_s, h.camera.height)

@@ -6,8 +6,14 @@ input; this module builds those inputs (:class:`StepFrame`, :class:`HeadFrame`, 
 functions, and flattens a step's scores into one record (:func:`flatten`, which carries every declared metric and
 refuses a score no metric declares).
 
-Attitude error is the rotation ``R_est R_true^T``; its per-head metrics take its rotation vector ``e`` (body frame)
-in that head's camera frame: about camera X (pitch), Y (yaw) and the boresight Z (roll).
+Attitude error, and the sign of every per-axis error: the error rotation is ``R_est R_true^T`` (``estimate *
+truth.inv()``, both ICRS -> body attitudes as scipy ``Rotation``), its rotation vector ``e`` (body frame; rad in the
+``attitude`` scope, arcsec in the scores).  ``attitude.body`` holds ``e`` about body +X, +Y, +Z; ``attitude.heads[h]``
+holds ``M e``, with ``M`` head h's body -> camera mounting: about camera +X and +Y (``x_arcsec``, ``y_arcsec``: across
+the boresight) and +Z (``roll_arcsec``: about the boresight), each signed, and ``cross_boresight_arcsec = hypot(x,
+y)``.  So an estimate ``Rotation.from_rotvec(a * u) * truth`` (``a`` rad, ``u`` a unit body axis) scores ``+a`` on
+``u`` and 0 on the axes across it (exactly for a rotation about one axis; the components of a small rotation
+otherwise), and ``-a`` when turned the other way; ``total_arcsec`` is ``|e|``.
 
 Star-level metrics use the truth of one head's frame:
 
@@ -45,14 +51,27 @@ CENTROID_GATE_PX = 3.0  # px, the gate of every match of a detection to a true s
 
 
 def attitude_error(estimate: Rotation, truth: Rotation, mountings: list[Rotation]) -> dict:
-    """``info["scores"]["attitude"]``: the ``attitude`` scope's metrics of the error rotation vector (rad, body frame)
-    and, per head (``heads``), the ``head_attitude`` scope's of that vector in the head's camera frame (arcsec)."""
+    """``info["scores"]["attitude"]``: the ``attitude`` scope's metrics of the error rotation vector (rad, body frame),
+    the ``body_attitude`` scope's of it in arcsec (``body``) and, per head (``heads``; ``mountings``: body -> camera),
+    the ``head_attitude`` scope's of that vector in the head's camera frame (arcsec); signs in the module doc."""
     error = (estimate * truth.inv()).as_rotvec()  # body frame, rad
     per_head = []
     for m in mountings:
         e = m.apply(error) * ARCSEC_PER_RAD
         per_head.append({metric.key: metric.compute(e) for metric in declared("head_attitude")})
-    return {**{metric.key: metric.compute(error) for metric in declared("attitude")}, "heads": per_head}
+    body = {metric.key: metric.compute(error * ARCSEC_PER_RAD) for metric in declared("body_attitude")}
+    return {**{metric.key: metric.compute(error) for metric in declared("attitude")}, "body": body, "heads": per_head}
+
+
+def threshold_errors(attitude: dict, threshold) -> list[tuple[float, float]]:
+    """(error, its bound) pairs, arcsec, of ``info["scores"]["attitude"]`` under an availability threshold
+    (``starenv.scenario.AvailabilityThreshold``): the total angle, or every head's cross-boresight error and the
+    size of its roll error.  The attitude is within the threshold when each error is under its bound."""
+    if threshold.total_arcsec is not None:
+        return [(attitude["total_arcsec"], threshold.total_arcsec)]
+    cross, roll = threshold.cross_boresight_arcsec, threshold.roll_arcsec
+    return [pair for h in attitude["heads"] for pair in ((h["cross_boresight_arcsec"], cross),
+                                                         (abs(h["roll_arcsec"]), roll))]
 
 
 def match(detected_xy: np.ndarray, true_xy: np.ndarray, gate_px: float = CENTROID_GATE_PX):
@@ -195,11 +214,16 @@ def score_stars(
 @dataclass
 class StepFrame:
     """The ``step`` scope's input: the estimate (None: unavailable), ``info["scores"]["attitude"]`` (empty when
-    unavailable) and the scenario's ``availability_threshold_arcsec``."""
+    unavailable) and the scenario's ``availability_threshold_arcsec`` (``starenv.scenario.AvailabilityThreshold``)."""
 
     estimate: Rotation | None
     attitude: dict
-    threshold: float
+    threshold: Any
+
+    @cached_property
+    def within(self) -> bool:
+        """The attitude is within the threshold (:func:`threshold_errors`); False when unavailable."""
+        return bool(self.attitude) and all(e < bound for e, bound in threshold_errors(self.attitude, self.threshold))
 
 
 def score_step(action: dict, frame, scenario) -> dict:
@@ -217,8 +241,8 @@ def score_step(action: dict, frame, scenario) -> dict:
             corrected_xy=action["corrected_xy"][i],
             calibrated_xy=calibrated_positions(h.truth.xy_centroid, spec.camera, spec.calibrated))))
     step = StepFrame(estimate, att, scenario.availability_threshold_arcsec)
-    return {"frame": frame.index, **{m.key: m.compute(step) for m in declared("step")}, "attitude": att,
-            "heads": heads}
+    return {"frame": frame.index, "time_s": float(frame.t_mid), **{m.key: m.compute(step) for m in declared("step")},
+            "attitude": att, "heads": heads}
 
 
 def calibrated_positions(xy: np.ndarray, camera: Camera, calibrated: Camera) -> np.ndarray:
@@ -261,19 +285,25 @@ def _pool_scope(scope: str, per_head: list[dict], where: str, n_heads: int) -> d
 
 def flatten(scores: dict, latency_s: dict[str, float] | None = None, restoration: list[dict] | None = None,
             filter_scores: dict | None = None) -> dict[str, float | None]:
-    """One step's flat ``metric -> value`` record: its scores (``info["scores"]``), agent latencies (s per role),
-    the restoration scores of each restored head (:func:`score_restoration`; None: no deblurrer, no restoration
-    keys) and a filter's scores (:func:`score_filter`; None: no filter, no filter keys), then the ``record``
-    scope's metrics of them.  Per-head values are pooled over heads by each metric's ``pool``.  ``ValueError`` when
-    a scores dict holds a key no metric declares (or lacks a declared one): nothing is dropped silently."""
-    _check(scores, "step", "scores", ("frame", "attitude", "heads"))
+    """One step's flat ``metric -> value`` record, indexed by ``frame`` and ``time_s`` (when the scores carry it): its
+    scores (``info["scores"]``), agent latencies (s per role), the restoration scores of each restored head
+    (:func:`score_restoration`; None: no deblurrer, no restoration keys) and a filter's scores (:func:`score_filter`;
+    None: no filter, no filter keys), then the ``record`` scope's metrics of them.  Per-head values are pooled over
+    heads by each metric's ``pool``.  ``ValueError`` when a scores dict holds a key no metric declares (or lacks a
+    declared one): nothing is dropped silently."""
+    _check(scores, "step", "scores", ("frame", "time_s", "attitude", "heads"))
     rec: dict[str, float | None] = {"frame": scores["frame"]}
+    if "time_s" in scores:  # scores decoded from a recording carry the time in the message, not here
+        rec["time_s"] = float(scores["time_s"])
     rec.update({m.name: float(scores[m.key]) for m in declared("step")})
     att, heads = scores["attitude"], scores["heads"]
     if att:
-        _check(att, "attitude", "scores.attitude", ("heads",))
+        _check(att, "attitude", "scores.attitude", ("heads", "body"))
+        _check(att["body"], "body_attitude", "scores.attitude.body")
     for m in declared("attitude"):
         rec[m.name] = float(att[m.key]) if att else None
+    for m in declared("body_attitude"):
+        rec[m.name] = float(att["body"][m.key]) if att else None
     rec.update(_pool_scope("head_attitude", att["heads"] if att else [], "scores.attitude.heads", len(heads)))
     rec.update(_pool_scope("head", heads, "scores.heads", len(heads)))
     if restoration is not None:

@@ -16,8 +16,10 @@ the reset's info.
 
 An exception in a worker's env is raised again in the main process with the env's index and message (a ValueError
 for a NaN in an action stays a ValueError), after every worker has answered, so the pipes stay in step (the envs
-before the failing one in its worker's share have taken the step, those after it have not); a worker that dies raises
-a RuntimeError naming its envs.
+before the failing one in its worker's share have taken the step, those after it have not).  A worker that dies
+(before or during a command) raises a RuntimeError naming its envs; one that does not answer within ``timeout_s``
+(stopped, or stuck in an env) raises a TimeoutError naming its envs.  After either the vector env cannot go on (its
+workers are out of step): every later reset or step raises that error again, and ``close`` ends the workers.
 
     envs = SharedMemoryVectorEnv.from_id("StarEnv/Paper000-v0", num_envs=4, workers=2, infos=False)
     observations, infos = envs.reset(seed=0)      # env i is seeded seed + i
@@ -170,13 +172,20 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
         infos: send each env's info back on every step (reset always does).
         copy: return copies of the observations (else views of the shared memory, overwritten by the next step).
         context: the multiprocessing start method (default: the platform's).
+        timeout_s: longest wait (s) for the workers' answers to one reset or step (None: no limit); building the
+            envs at construction has the same limit.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, env_fns: Sequence[Callable[[], gym.Env]], *, workers: int | None = None,
-                 infos: bool = True, copy: bool = True, context: str | None = None):
+                 infos: bool = True, copy: bool = True, context: str | None = None,
+                 timeout_s: float | None = 600.0):
         self._pipes, self._processes = [], []  # nothing to close yet
+        self._broken: Exception | None = None
+        if timeout_s is not None and not (isinstance(timeout_s, int | float) and timeout_s > 0):
+            raise ValueError(f"timeout_s must be a positive number of seconds or None, got {timeout_s!r}")
+        self.timeout_s = timeout_s
         if len(env_fns) == 0:
             raise ValueError("env_fns must hold at least one env constructor")
         for name, flag in (("infos", infos), ("copy", copy)):
@@ -217,14 +226,15 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
 
     @classmethod
     def from_id(cls, env_id: str, num_envs: int, *, workers: int | None = None, infos: bool = True,
-                copy: bool = True, context: str | None = None, **env_kwargs) -> SharedMemoryVectorEnv:
+                copy: bool = True, context: str | None = None, timeout_s: float | None = 600.0,
+                **env_kwargs) -> SharedMemoryVectorEnv:
         """``num_envs`` copies of ``gym.make(env_id, **env_kwargs)``.  ``env_id`` is a registered id such as
         ``"StarEnv/Paper000-v0"``; ``gym.make`` imports the module of a ``"module:Env"`` id, so do not pass ids read
         from untrusted files."""
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         return cls([_Maker(env_id, env_kwargs)] * num_envs, workers=workers, infos=infos, copy=copy,
-                   context=context)
+                   context=context, timeout_s=timeout_s)
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None, options: dict | None = None):
         """Reset every env; an integer ``seed`` seeds env ``i`` with ``seed + i``."""
@@ -234,30 +244,36 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
             seeds = list(seed)
             if len(seeds) != self.num_envs:
                 raise ValueError(f"seed must be an integer, None or {self.num_envs} of them, got {len(seeds)}")
-        for pipe, share in zip(self._pipes, self._shares, strict=True):
-            pipe.send(("reset", ([seeds[i] for i in share], options)))
+        self._send([("reset", ([seeds[i] for i in share], options)) for share in self._shares])
         infos = self._merged(self._answers())
         return self._observations(), infos
 
     def step(self, actions):
         """Step every env with its row of ``actions`` (a batch of the action space, ``num_envs`` first)."""
+        if self._broken is not None:  # before the actions are written: a worker may still be reading them
+            raise self._broken
         _assign(self._shared.actions, actions)
-        for pipe in self._pipes:
-            pipe.send(("step", self.infos))
+        self._send([("step", self.infos)] * len(self._pipes))
         infos = self._merged(self._answers())  # empty unless self.infos
         return (self._observations(), self._shared.rewards.copy(), self._shared.terminations.astype(bool),
                 self._shared.truncations.astype(bool), infos)
 
     def close_extras(self, **kwargs) -> None:
-        """Close every env (files their wrappers write, such as videos, are finished) and end the workers."""
+        """Close every env (files their wrappers write, such as videos, are finished) and end the workers (a worker
+        that does not answer within ``timeout_s`` (at most 30 s), or after an error left the pipes out of step, is
+        terminated)."""
+        wait = 30.0 if self.timeout_s is None else min(30.0, self.timeout_s)
         for pipe, process in zip(self._pipes, self._processes, strict=True):
-            if process.is_alive():
+            if process.is_alive() and self._broken is None:
                 try:
                     pipe.send(("close", None))
-                    pipe.recv()
-                except (BrokenPipeError, EOFError):
+                    if pipe.poll(wait):
+                        pipe.recv()
+                except (BrokenPipeError, ConnectionResetError, EOFError):
                     pass
-            process.join(timeout=30)
+            if self._broken is not None and process.is_alive():
+                process.kill()  # stopped or out of step: SIGKILL also ends a SIGSTOPped process
+            process.join(timeout=wait)
             if process.is_alive():
                 process.terminate()
             pipe.close()
@@ -265,21 +281,48 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
     def _observations(self):
         return _copy(self._shared.observations) if self.copy else self._shared.observations
 
-    def _answers(self) -> list:
-        """Each worker's answer, in env order; the first error is raised once every worker has answered."""
-        answers, error = [], None
-        for pipe, process, share in zip(self._pipes, self._processes, self._shares, strict=True):
+    def _send(self, commands: list) -> None:
+        """One command to each worker; a worker gone (a broken pipe) is named as :meth:`_answers` names it."""
+        if self._broken is not None:
+            raise self._broken
+        for pipe, process, share, command in zip(self._pipes, self._processes, self._shares, commands, strict=True):
             try:
-                status, payload = pipe.recv()
-            except EOFError:
+                pipe.send(command)
+            except (BrokenPipeError, ConnectionResetError, EOFError):
                 process.join(timeout=5)
-                status, payload = "error", (share[0], "RuntimeError",
-                                            f"the worker of envs {share[0]}-{share[-1]} died "
-                                            f"(exit code {process.exitcode})", "")
+                self._broken = RuntimeError(f"env {share[0]}: the worker of envs {share[0]}-{share[-1]} died "
+                                            f"(exit code {process.exitcode})")
+                raise self._broken from None
+
+    def _answers(self) -> list:
+        """Each worker's answer, in env order; the first error is raised once every worker has answered (or was
+        found dead, or let ``timeout_s`` pass: then the vector env is broken, see the module docstring)."""
+        import time
+
+        answers, error = [], None
+        deadline = None if self.timeout_s is None else time.monotonic() + self.timeout_s
+        for pipe, process, share in zip(self._pipes, self._processes, self._shares, strict=True):
+            envs = f"envs {share[0]}-{share[-1]}"
+            try:
+                if deadline is not None and not pipe.poll(max(0.0, deadline - time.monotonic())):
+                    self._broken = TimeoutError(f"env {share[0]}: the worker of {envs} did not answer within "
+                                                f"{self.timeout_s:g} s (stopped or stuck)")
+                    status, payload = "broken", None
+                else:
+                    status, payload = pipe.recv()
+            except (EOFError, ConnectionResetError, BrokenPipeError):
+                process.join(timeout=5)
+                self._broken = RuntimeError(f"env {share[0]}: the worker of {envs} died (exit code "
+                                            f"{process.exitcode})")
+                status, payload = "broken", None
+            if status == "broken":
+                continue
             if status == "error":
                 error = error or payload
             else:
                 answers.extend(payload or [])
+        if self._broken is not None:
+            raise self._broken
         if error is not None:
             index, name, message, worker_traceback = error
             kind = getattr(builtins, name, None)

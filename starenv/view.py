@@ -10,18 +10,19 @@ from starenv.sim.render import StarTruth
 TRUTH_COLOUR = (80, 220, 80)  # RGB
 
 
-def stretch(frame: np.ndarray) -> np.ndarray:
+def stretch(frame: np.ndarray, black_sigma: float = 0.0) -> np.ndarray:
     """8-bit asinh stretch of a raw frame around its background.
 
-    With the background level ``m`` (median) and noise ``s`` (1.4826 x median absolute deviation), a pixel maps to
-    ``asinh((x - m) / 3s) / asinh(top / 3s)``: noise stays dim grey, faint stars show, bright ones do not clip until
-    ``top`` (the 99.99th percentile, at least 20 s above the background).
+    With the background level ``m`` (median) and noise ``s`` (1.4826 x median absolute deviation), black at
+    ``b = m + black_sigma s``, a pixel maps to ``asinh((x - b) / 3s) / asinh((top - b) / 3s)``: noise stays dim grey
+    (black up to ``black_sigma`` s, for frames shown small), faint stars show, bright ones do not clip until ``top``
+    (the 99.99th percentile, at least 20 s above the background).
     """
     sample = frame[::4, ::4].astype(np.float32) if frame.size > 65536 else frame.astype(np.float32)
     m = float(np.median(sample))
     s = max(1.4826 * float(np.median(np.abs(sample - m))), 0.5)
-    top = max(float(np.percentile(frame, 99.99)) - m, 20.0 * s)
-    x = (frame.astype(np.float32) - np.float32(m)) / np.float32(3.0 * s)
+    top = max(float(np.percentile(frame, 99.99)) - m, 20.0 * s) - black_sigma * s
+    x = (frame.astype(np.float32) - np.float32(m + black_sigma * s)) / np.float32(3.0 * s)
     y = np.arcsinh(np.clip(x, 0.0, None)) / np.float32(np.arcsinh(top / (3.0 * s)))
     return (np.clip(y, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 

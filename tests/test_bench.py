@@ -179,7 +179,7 @@ BAD = {
     "sweep with both forms": (SMALL.replace("values = [0, 4]", "values = [0, 4], start = 0"), "runs.0.sweep.values"),
     "bad seeds": (SMALL.replace("seeds = [0]", "seeds = [-1]"), "seeds: expected a non-empty list of integers >= 0"),
     "no runs": ("name = 'x'\n", "runs: expected a non-empty array of tables"),
-    "bad recordings": ("recordings = 'yes'\n" + SMALL, "recordings: expected true or false, got 'yes'"),
+    "bad recordings": ("recordings = 'yes'\n" + SMALL, "recordings: expected true, false or a non-empty list"),
     "bad group recordings": (SMALL + "recordings = 'no'\n", "runs.0.recordings: expected true or false"),
     "preset name redefined": (SMALL + '[pipelines.scenario]\nsolver = "a:B"\n', "built-in preset name"),
 }
@@ -400,11 +400,13 @@ def test_report_links_tables_and_plots_that_exist(tmp_path):
     links = [part.split(")")[0] for part in text.split("](")[1:]]
     assert "summary.md" in links and "summary.csv" in links
     pngs = [link for link in links if link.endswith(".png")]
-    # error, ID rate, availability and fixes vs rate for the one swept (scenario, key, axis), latency per role
+    # error, ID rate, availability and fixes vs rate for the one swept (scenario, key, axis), latency per role;
+    # the datasheet figures and each pipeline's error series and spectra at the smallest swept rate (no plain case)
     assert sorted(Path(p).name for p in pngs) == [
-        "paper_000-latency.png", "paper_000-motion_rate_dps_about_1_0_0-availability.png",
+        "paper_000-datasheet.png", "paper_000-latency.png", "paper_000-lost_in_space-spectrum.png",
+        "paper_000-motion_rate_dps_about_1_0_0-availability.png",
         "paper_000-motion_rate_dps_about_1_0_0-error.png", "paper_000-motion_rate_dps_about_1_0_0-fixed.png",
-        "paper_000-motion_rate_dps_about_1_0_0-id-rate.png"]
+        "paper_000-motion_rate_dps_about_1_0_0-id-rate.png", "paper_000-scenario-spectrum.png"]
     assert "## Working rate" in text and "### paper_000: motion.rate_dps about [1, 0, 0] (3 steps per rate)" in text
     for link in links:
         assert (tmp_path / link).exists(), link

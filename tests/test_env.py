@@ -204,10 +204,11 @@ def test_calibrated_camera_is_what_the_sensor_believes():
 def test_reward_scores_and_availability():
     env = small_env()
     obs, info = env.reset(seed=1)
-    threshold = env.scenario.availability_threshold_arcsec
+    threshold = env.scenario.availability_threshold_arcsec.total_arcsec
     _, reward, *_, info2 = env.step(truth_action(info))
     assert reward == 1.0 and info2["scores"]["attitude"]["total_arcsec"] < 1e-6
     assert info2["scores"]["frame"] == info["truth"]["frame"] == 0
+    assert info2["scores"]["time_s"] == info["truth"]["time_s"]
     # Rotate the estimate by half the threshold about head 0's boresight: all of it is roll.
     mount = env.scenario.heads[0].camera.mounting
     axis = mount.inv().apply([0, 0, 1])
@@ -218,6 +219,25 @@ def test_reward_scores_and_availability():
     assert head["roll_arcsec"] == pytest.approx(0.5 * threshold, rel=1e-6) and head["cross_boresight_arcsec"] < 1e-6
     _, reward, *_, info4 = env.step({"attitude": np.array([0, 0, 0, 1.0]), "attitude_valid": 0})
     assert reward == 0.0 and not info4["scores"]["available"]
+
+
+def test_a_per_axis_threshold_bounds_cross_boresight_and_roll_apart():
+    """With ``{cross_boresight, roll}`` a turn about head 0's boresight is scored against the roll bound: 0.4 of it
+    is within (reward 0.6), 1.5 of it is not, and neither is 1.5 of the cross-boresight bound about camera +X; the
+    lost rule counts the steps outside."""
+    env = small_env(**{"availability_threshold_arcsec": {"cross_boresight": 20.0, "roll": 200.0},
+                       "lost_after_steps": 2})
+    _, info = env.reset(seed=1)
+    mount = env.scenario.heads[0].camera.mounting
+    ends = []
+    for camera_axis, size_arcsec, reward_expected, within in (
+            ([0, 0, 1], 80.0, 0.6, True), ([0, 0, 1], 300.0, 0.0, False), ([1, 0, 0], 30.0, 0.0, False)):
+        axis = mount.inv().apply(camera_axis)
+        off = Rotation.from_rotvec(axis * size_arcsec * ARCSEC) * Rotation.from_quat(info["truth"]["attitude"])
+        _, reward, terminated, _, info = env.step({"attitude": off.as_quat(), "attitude_valid": 1})
+        assert reward == pytest.approx(reward_expected, abs=1e-6) and info["scores"]["within_threshold"] is within
+        ends.append(terminated)
+    assert ends == [False, False, True]
 
 
 def test_lost_rule_terminates_and_duration_truncates():

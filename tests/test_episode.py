@@ -34,6 +34,7 @@ def test_logs_pair_each_frame_with_its_truth_action_and_scores():
     assert [log.index for log in seen.logs] == [0, 1, 2, 3]
     for log in seen.logs:
         assert log.truth["frame"] == log.scores["frame"] == log.record["frame"] == log.index
+        assert log.truth["time_s"] == log.scores["time_s"] == log.record["time_s"]
         assert log.action is None and log.record["available"] == 0.0
     assert len(result.records) == 4 and result.dropped.shape == (len(env.scenario.heads),)
 

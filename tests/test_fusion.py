@@ -245,7 +245,7 @@ def test_the_filter_is_the_pipelines_estimate_and_beats_frame_by_frame_roll():
     rms = {}
     for name, pipe in (("classical", Pipeline.for_scenario(env.scenario)), ("filter", fused)):
         records = run_episode(env, pipe, seed=0, steps=30).records
-        rms[name] = math.sqrt(np.mean([r["roll_error_arcsec"] ** 2 for r in records[5:]]))
+        rms[name] = math.sqrt(np.mean([r["head0_error_roll_arcsec"] ** 2 for r in records[5:]]))
         scored = {"gyro_bias_error_deg_hr", "attitude_nees"} <= set(records[-1])
         assert scored == (name == "filter")  # the filter's estimate is scored against the truth, per step
     assert rms["filter"] < 0.5 * rms["classical"]

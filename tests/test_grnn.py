@@ -157,7 +157,7 @@ def _identify_frames(feature_options: dict, frames: int = 2):
             error = math.degrees(delta.magnitude()) * 3600.0
         out.append((error, right, wrong))
         obs, _, _, _, info = env.step(action)
-    return out, env.scenario.availability_threshold_arcsec
+    return out, env.scenario.availability_threshold_arcsec.total_arcsec
 
 
 def test_grnn_without_options_identifies_a_paper_004_frame():

@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 import tomllib
 import tracemalloc
 import warnings
@@ -97,7 +98,7 @@ def test_a_bench_file_cannot_run_code_at_validation(tmp_path):
                                       f'args = ["touch", "{marker}"]\n[[runs]]') + 'pipelines = ["x"]\n'
     with pytest.raises(BenchError, match="pipelines.x: solver: agent 'subprocess:Popen'"):
         parse_bench(text)
-    with pytest.raises(BenchError, match="recordings: expected true or false, got 'os:system'"):
+    with pytest.raises(BenchError, match="recordings: expected true, false.* got 'os:system'"):
         parse_bench('recordings = "os:system"\n' + BENCH)
     with pytest.raises(BenchError, match="trust: unknown key"):  # a file cannot grant trust itself
         parse_bench('trust = ["subprocess"]\n' + BENCH)
@@ -556,3 +557,178 @@ def test_fuzz_bench_files(lines):
         pass
 
 
+
+
+# --- fuzzing the files starenv reads besides scenarios and benches -------------------------------------------------
+# Each case: only ValueError (RecordingError, DatasetError, ... are ValueErrors) escapes, within CASE_SECONDS, and the
+# traced peak stays under 2 GiB (``under_2_gb``).  The files are small, so the bound on time is generous: a case
+# that hits an unbounded loop or allocation (the bugs these tests look for) takes minutes, not seconds.
+CASE_SECONDS = 20.0
+
+
+class Blob(bytes):
+    """File contents that hypothesis's reports name instead of printing."""
+
+    def __repr__(self) -> str:
+        return f"<{len(self)} bytes>"
+
+
+@pytest.fixture(scope="module")
+def small_recording(tmp_path_factory):
+    """A finished recording of three small steps, in chunks of 4 KiB (many chunks, many record boundaries)."""
+    path = tmp_path_factory.mktemp("fuzz_mcap") / "run.mcap"
+    env = StarSensorEnv("paper_000", SMALL)
+    run_episode(env, Pipeline.for_scenario(env.scenario), seed=0, steps=3,
+                observers=[McapRecorder(path, chunk_size=1 << 12)])
+    return Blob(path.read_bytes())
+
+
+def _mutate(data: bytes, flips, cut, insert) -> bytes:
+    out = bytearray(data)
+    for where, mask in flips:
+        out[int(where * (len(out) - 1))] ^= mask
+    if insert is not None:
+        where, blob = insert
+        at = int(where * len(out))
+        out[at:at] = blob
+    if cut is not None:
+        del out[int(cut * len(out)):]
+    return bytes(out)
+
+
+mutations = dict(flips=st.lists(st.tuples(st.floats(0, 1), st.integers(1, 255)), max_size=3),
+                 cut=st.one_of(st.none(), st.floats(0, 1)),
+                 insert=st.one_of(st.none(), st.tuples(st.floats(0, 1), st.binary(min_size=1, max_size=24))))
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(**mutations)
+def test_fuzz_recordings(small_recording, flips, cut, insert):
+    """A recording with bytes flipped, inserted or cut off, read finished (metadata, steps) and as a killed run's
+    partial file (read_partial, recover)."""
+    from starenv.record.mcap import read_metadata
+
+    data = _mutate(small_recording, flips, cut, insert)
+    with tempfile.TemporaryDirectory() as tmp:
+        finished, partial = Path(tmp) / "f.mcap", Path(tmp) / "f.mcap.partial"
+        finished.write_bytes(data)
+        partial.write_bytes(data)
+        t0 = time.perf_counter()
+        for read in (lambda: read_metadata(finished), lambda: list(read_steps(finished)),
+                     lambda: read_partial(partial), lambda: recover(partial, Path(tmp) / "out.mcap", replace=True)):
+            try:
+                read()
+            except OK_ERRORS:
+                pass
+        assert time.perf_counter() - t0 < CASE_SECONDS
+
+
+@pytest.fixture(scope="module")
+def shipped_weights():
+    from starenv.agents.identify.network import DEFAULT_WEIGHTS
+
+    manifest = json.loads((DEFAULT_WEIGHTS / "manifest.json").read_text())
+    return manifest, Blob((DEFAULT_WEIGHTS / "weights.pt").read_bytes())
+
+
+MANIFEST_KEYS = ["config", "config.n_classes", "config.input_size", "config.widths", "config.widths.2", "config.depth",
+                 "config.heads", "config.head_dim", "config.mlp_dim", "config.scale_dn", "classes_hip",
+                 "classes_hip.0", "camera", "camera.fov_deg", "camera.fov_deg.0", "weights_sha256",
+                 "identity_sha256"]
+
+
+def _set(data: dict, dotted: str, value) -> None:
+    node = data
+    *parents, last = dotted.split(".")
+    for part in parents:
+        if isinstance(node, list) and not (part.isdigit() and int(part) < len(node)):
+            return
+        node = node[int(part)] if isinstance(node, list) else node.get(part)
+        if not isinstance(node, dict | list):
+            return
+    if isinstance(node, list):
+        if last.isdigit() and int(last) < len(node):
+            node[int(last)] = value
+    else:
+        node[last] = value
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(edits=st.dictionaries(st.sampled_from(MANIFEST_KEYS), values, max_size=3), forge=st.booleans(), **mutations)
+def test_fuzz_weights_and_manifests(shipped_weights, edits, forge, flips, cut, insert):
+    """The shipped run folder with manifest values of any type and weights bytes changed; ``forge``: the hashes
+    recomputed after the change (a forger's folder), so the checks behind them are reached too."""
+    from starenv.agents.identify.network import load_network, manifest_hashes
+
+    manifest, weights = json.loads(json.dumps(shipped_weights[0])), shipped_weights[1]
+    for key, value in edits.items():
+        _set(manifest, key, value)
+    weights = _mutate(weights, flips, cut, insert)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        if forge:
+            try:
+                manifest.update(manifest_hashes(manifest, weights))
+            except (KeyError, TypeError, ValueError):  # a manifest without the keys the hash covers
+                pass
+        (folder / "manifest.json").write_text(json.dumps(manifest))
+        (folder / "weights.pt").write_bytes(weights)
+        t0 = time.perf_counter()
+        try:
+            load_network(folder)
+        except OK_ERRORS:
+            pass
+        assert time.perf_counter() - t0 < CASE_SECONDS
+
+
+@pytest.fixture(scope="module")
+def small_dataset(tmp_path_factory):
+    """A built main_star dataset of two shards of two 64 px samples: its spec and its files' bytes."""
+    from starenv.datasets import build_dataset, load_spec
+
+    spec = load_spec({"name": "tiny", "kind": "main_star", "scenario": "paper_002", "samples": 4, "shard_size": 2,
+                      "overrides": {"heads.0.width": 64, "heads.0.height": 64},
+                      "pointing": {"center_ra_deg": 83.8, "center_dec_deg": -5.4, "radius_deg": 10.0}})
+    out = tmp_path_factory.mktemp("fuzz_data")
+    build_dataset(spec, out, jobs=1, progress=False, log=lambda *_: None)
+    return spec.name, {p.name: Blob(p.read_bytes()) for p in out.iterdir()}
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(target=st.sampled_from(["shard-00001.npz", "dataset.json", "shards.json"]), forge=st.booleans(), **mutations)
+def test_fuzz_shards(small_dataset, target, forge, flips, cut, insert):
+    """A dataset with one of its files' bytes changed, read for training (every shard) and resumed by a build;
+    ``forge``: a changed shard's new hash recorded in shards.json, so the parser behind the hash check is reached."""
+    import hashlib
+
+    from starenv.agents.identify.network_data import ShardDataset
+    from starenv.datasets import build_dataset, load_spec
+    from starenv.datasets.shards import INDEX
+
+    _, files = small_dataset
+    spec = load_spec(json.loads(files["dataset.json"])["spec"])
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        for name, data in files.items():
+            (out / name).write_bytes(data)
+        changed = _mutate(files[target], flips, cut, insert)
+        (out / target).write_bytes(changed)
+        if forge and target.endswith(".npz"):
+            index = json.loads(files[INDEX])
+            index["sha256"][target] = hashlib.sha256(changed).hexdigest()
+            (out / INDEX).write_text(json.dumps(index))
+        t0 = time.perf_counter()
+        try:
+            dataset = ShardDataset(out)
+            for shard in range(dataset.n_shards):
+                dataset.shard(shard)
+        except OK_ERRORS:
+            pass
+        try:
+            build_dataset(spec, out, jobs=1, progress=False, log=lambda *_: None)
+        except OK_ERRORS:
+            pass
+        else:  # a build that went through leaves every shard as a fresh build writes it, unless a forger recorded
+            # the hash of a changed shard whose meta still fits (only building it again would tell)
+            assert forge or all((out / n).read_bytes() == d for n, d in files.items() if n.endswith(".npz"))
+        assert time.perf_counter() - t0 < CASE_SECONDS

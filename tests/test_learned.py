@@ -9,7 +9,7 @@ import torch
 
 from starenv.agents.identify.network_model import MainStarConfig, MainStarNet, parameter_count
 from starenv.agents.identify.network_train import parse_config, train
-from starenv.datasets.shards import write_npz
+from starenv.datasets.shards import record_shards, write_npz
 
 
 def test_paper_architecture_shapes():
@@ -59,7 +59,7 @@ def _toy_dataset(folder, n, seed):
     folder.mkdir()
     shard = {"image": images.round().astype(np.uint16), "label": labels.astype(np.int32),
              "meta": np.frombuffer(json.dumps({"spec_digest": "toy"}).encode(), dtype=np.uint8)}
-    write_npz(folder / "shard-00000.npz", shard)
+    record_shards(folder, "toy", {"shard-00000.npz": write_npz(folder / "shard-00000.npz", shard)})
     info = {"name": "toy", "kind": "main_star", "spec_digest": "toy", "starenv_version": "test", "samples": n,
             "n_shards": 1, "spec": {"shard_size": n}}
     (folder / "dataset.json").write_text(json.dumps(info))

@@ -40,7 +40,8 @@ def blank_scores(n_heads: int, available: bool = True) -> dict:
     def values(scope):
         return {m.key: empty[m.dtype] if m.dtype is not float else 1.0 for m in metrics.declared(scope)}
 
-    att = {**values("attitude"), "heads": [values("head_attitude") for _ in range(n_heads)]} if available else {}
+    heads = [values("head_attitude") for _ in range(n_heads)]
+    att = {**values("attitude"), "body": values("body_attitude"), "heads": heads} if available else {}
     return {"frame": 0, **values("step"), "available": available, "attitude": att,
             "heads": [values("head") for _ in range(n_heads)]}
 
@@ -74,7 +75,7 @@ def test_a_metric_declared_once_reaches_every_output(tmp_path, monkeypatch):
     assert "| stars on frame median / p95 |" in accuracy
     assert "- stars on frame: true stars on the head's frame" in accuracy
     assert metric_path("stars_on_frame") == "metrics/count/stars_on_frame"
-    assert "metrics/count" in [origin for origin, _ in metric_panels()]
+    assert "metrics/count" in [panel.origin for panel in metric_panels()]
     import rerun as rr
 
     from starenv.record.rerun import mcap_to_rrd
@@ -106,15 +107,17 @@ def test_flatten_refuses_a_score_no_metric_declares_and_one_that_is_missing():
 
 def test_flatten_carries_every_declared_metric():
     """Every metric of info["scores"] and of the record scope gets its record key (one per head for ``each``), and
-    each agent role's latency its own; nothing else is added but the frame index."""
+    each agent role's latency its own; nothing else is added but the frame index (and the frame's time, from scores
+    that carry it: the env's)."""
     n_heads = 3
     record = flatten(blank_scores(n_heads), {"detector": 0.002, "pipeline": 0.005})
     expected = {"frame", "latency_detector_ms", "latency_pipeline_ms"}
     for m in metrics.METRICS:
-        if m.scope in ("step", "attitude", "head_attitude", "head", "record"):
+        if m.scope in ("step", "attitude", "body_attitude", "head_attitude", "head", "record"):
             expected |= {m.name.format(head=h) for h in range(n_heads)}
     assert set(record) == expected
-    assert record["latency_pipeline_ms"] == 5.0 and record["head2_pitch_error_arcsec"] == 1.0
+    assert record["latency_pipeline_ms"] == 5.0 and record["head2_error_x_arcsec"] == 1.0
+    assert flatten({**blank_scores(n_heads), "time_s": 0.25}, {"detector": 0.002})["time_s"] == 0.25
 
 
 @pytest.mark.parametrize("solved, within, fixed", [(True, True, 1.0), (False, True, 0.0), (True, False, 0.0)])
@@ -134,9 +137,10 @@ def test_recorded_field_numbers_stay_those_of_older_files():
         ("solved", 9), ("prediction_error_px_mean", 10), ("prediction_error_px_max", 11), ("predictions_scored", 12),
         ("correction_error_px_mean", 13), ("correction_error_x_px", 14), ("correction_error_y_px", 15),
         ("distortion_px_mean", 16), ("extra", 100)]
-    assert numbers["HeadAttitudeError"] == [("pitch_arcsec", 1), ("yaw_arcsec", 2), ("roll_arcsec", 3),
+    assert numbers["HeadAttitudeError"] == [("x_arcsec", 1), ("y_arcsec", 2), ("roll_arcsec", 3),
                                             ("cross_boresight_arcsec", 4)]
-    assert numbers["AttitudeError"] == [("total_arcsec", 1), ("heads", 2)]
+    assert numbers["BodyAttitudeError"] == [("x_arcsec", 1), ("y_arcsec", 2), ("z_arcsec", 3)]
+    assert numbers["AttitudeError"] == [("total_arcsec", 1), ("heads", 2), ("body", 3)]
     assert numbers["StepScores"] == [("frame", 1), ("time_s", 2), ("source", 3), ("available", 4),
                                      ("within_threshold", 5), ("attitude", 6), ("heads", 7), ("record", 8),
                                      ("record_without_value", 9)]
@@ -151,12 +155,14 @@ def test_docs_hold_the_generated_tables():
 
 
 def test_every_record_key_finds_its_metric_and_summary_column():
-    assert metrics.lookup("latency_solver_ms").wall_clock and metrics.find("head12_yaw_error_arcsec")[1] == {
+    assert metrics.lookup("latency_solver_ms").wall_clock and metrics.find("head12_error_y_arcsec")[1] == {
         "head": "12"}
     assert metrics.parse_column("prediction_error_px_mean_median") == ("prediction_error_px_mean", "median")
     assert metrics.parse_column("within_threshold") == ("within_threshold", "share")
     assert metrics.parse_column("id_rate_mean") == ("id_rate", "mean")
-    assert metrics.parse_column("scenario") is None and metrics.find("headx_yaw_error_arcsec") is None
+    assert metrics.parse_column("head1_error_roll_arcsec_rms") == ("head1_error_roll_arcsec", "rms")
+    assert metrics.parse_column("time_s") is None and "time_s" in metrics.INDEX_KEYS
+    assert metrics.parse_column("scenario") is None and metrics.find("headx_error_y_arcsec") is None
     with pytest.raises(KeyError, match="'sharpness': no metric"):
         metrics.lookup("sharpness")
 

@@ -28,7 +28,7 @@ from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
 from starenv.record import messages
 from starenv.record.mcap import McapRecorder, read_metadata, read_partial, read_steps
-from starenv.record.rerun import RerunRecorder, mcap_to_rrd
+from starenv.record.rerun import RerunRecorder, mcap_to_rrd, metric_path
 
 ROOT = Path(__file__).resolve().parents[1]
 OVERRIDES = {"drops.probability": 0.3}  # paper_004 with frequent drops, so drop handling is recorded too
@@ -76,11 +76,25 @@ def run(tmp_path_factory):
 
 
 def rrd_rows(path: Path) -> Counter:
+    """Temporal rows per entity (static ones, a series' style or the legend, left out)."""
     import rerun as rr
 
     rows = Counter()
     for chunk in rr.chunk.RrdReader(path).stream().to_chunks():
-        rows[chunk.entity_path] += chunk.num_rows
+        if not chunk.is_static:
+            rows[chunk.entity_path] += chunk.num_rows
+    return rows
+
+
+def image_rows(path: Path) -> Counter:
+    """Rows per entity that hold an image (not a clear)."""
+    import rerun as rr
+
+    rows = Counter()
+    for chunk in rr.chunk.RrdReader(path).stream().to_chunks():
+        batch = chunk.to_record_batch()
+        if "Image:buffer" in batch.schema.names:
+            rows[chunk.entity_path] += batch.num_rows - batch.column("Image:buffer").null_count
     return rows
 
 
@@ -271,15 +285,19 @@ def test_view_builds_the_review_recording(run, tmp_path, monkeypatch, capsys):
     assert cli.main(["view", str(tmp / "run.mcap"), "--rrd", str(rrd)]) == 0
     assert rrd_content(rrd) == rrd_content(tmp_path / "copy.rrd")
     rows = rrd_rows(rrd)
+    images = image_rows(rrd)
     for h in range(3):
-        assert rows[f"/head{h}/image"] == sum(int(log.obs["frame_valid"][h]) for log in logs)
+        delivered = sum(int(log.obs["frame_valid"][h]) for log in logs)
+        assert images[f"/head{h}/image"] == images[f"/head{h}/raw"] == delivered < STEPS
+        assert rows[f"/head{h}/image"] == rows[f"/head{h}/raw"] == STEPS  # a dropped frame clears both
         for layer in ("truth", "detections", "predictions"):
             assert rows[f"/head{h}/image/{layer}"] == STEPS
-    for key, group in (("attitude_error_arcsec", "attitude"), ("roll_error_arcsec", "attitude"),
-                       ("head1_pitch_error_arcsec", "per_head"), ("centroid_error_px_mean", "px"),
+    for key, group in (("attitude_error_arcsec", "attitude"), ("body_error_z_arcsec", "attitude"),
+                       ("head1_error_x_arcsec", "per_head"), ("centroid_error_px_mean", "px"),
                        ("id_rate", "share"), ("fixed", "share"), ("ids_correct", "count"),
                        ("prediction_error_px_mean", "px"), ("latency_pipeline_ms", "latency")):
-        assert rows[f"/metrics/{group}/{key}"] == sum(log.record.get(key) is not None for log in logs), key
+        assert metric_path(key).startswith(f"metrics/{group}/")
+        assert rows["/" + metric_path(key)] == sum(log.record.get(key) is not None for log in logs), key
     n_logs = sum(int((~log.obs["frame_valid"].astype(bool)).sum()) + (log.source != "solved") for log in logs)
     assert rows["/log"] == n_logs
     import rerun as rr
@@ -515,7 +533,7 @@ def test_rerun_review_holds_the_attitude_view_and_gyro_series(run):
         elif chunk.entity_path == "/attitude/stars/truth":
             sky += [(np.array(v.as_py()).reshape(-1, 3), labels.as_py()) for v, labels in
                     zip(batch.column("Points3D:positions"), batch.column("Points3D:labels"), strict=True)]
-        elif chunk.entity_path.startswith("/gyro/rate_dps/"):
+        elif chunk.entity_path.startswith("/gyro/rate_dps/") and not chunk.is_static:  # static: the series' style
             axis = chunk.entity_path[-1]
             for t, v in zip(batch.column("sim_time").cast("int64").to_pylist(), batch.column("Scalars:scalars"),
                             strict=True):
@@ -609,7 +627,7 @@ def test_the_rerun_review_plots_the_filter_against_truth(filtered, tmp_path):
     assert review == rrd_content(tmp / "live.rrd")
     series = {}
     for chunk in rr.chunk.RrdReader(tmp / "live.rrd").stream().to_chunks():
-        if chunk.entity_path.startswith("/filter/"):
+        if chunk.entity_path.startswith("/filter/") and not chunk.is_static:  # static: the series' style
             batch = chunk.to_record_batch()
             for frame, v in zip(batch.column("frame").to_pylist(), batch.column("Scalars:scalars"), strict=True):
                 series[chunk.entity_path, frame] = v.as_py()[0]

@@ -18,16 +18,41 @@ def test_working_limit_is_contiguous_from_the_smallest_value():
     assert working_limit([case("s", "p", 0.5, 1.0, 1.0, "k", 0)]) is None
 
 
-def test_headline_picks_by_availability_then_error_then_latency():
-    rows = [case("a", "fast", 1.0, 5.0, 10.0), case("a", "slow", 1.0, 5.0, 90.0), case("a", "sloppy", 1.0, 9.0, 1.0),
-            case("a", "lost", 0.5, 1.0, 1.0),
-            *(case("a", "fast", av, 1.0, 1.0, "motion.rate_dps", v) for v, av in ((0, 1.0), (5, 0.8))),
-            *(case("a", "slow", av, 1.0, 1.0, "motion.rate_dps", v) for v, av in ((0, 1.0), (5, 0.9))),
-            *(case("b", p, av, e, 1.0, "exposure_s", 0.01) for p, av, e in (("x", 0.7, 3.0), ("y", 0.7, 2.0)))]
+def with_interval(row, column, low, high):
+    """The row with a 95 % interval on one of its columns."""
+    row[column + "_ci_low"], row[column + "_ci_high"] = low, high
+    return row
+
+
+def test_headline_ranks_by_availability_then_error_and_ties_overlapping_intervals():
+    def ranked(scenario, pipeline, avail, avail_ci, err, err_ci, lat, key="", value=""):
+        row = case(scenario, pipeline, avail, err, lat, key, value)
+        with_interval(row, "within_threshold", *avail_ci)
+        return with_interval(row, "attitude_error_arcsec_median", *err_ci)
+
+    rows = [
+        # fast and slow overlap on both figures: a tie, whatever their latencies (slow's is the lower one)
+        ranked("a", "fast", 1.0, (0.9, 1.0), 5.0, (4.0, 6.0), 10.0),
+        ranked("a", "slow", 1.0, (0.9, 1.0), 5.5, (4.5, 6.5), 1.0),
+        ranked("a", "sloppy", 1.0, (0.9, 1.0), 9.0, (8.0, 10.0), 1.0),  # error interval apart from fast's
+        ranked("a", "lost", 0.5, (0.3, 0.7), 1.0, (0.5, 1.5), 1.0),  # availability interval apart
+        *(case("a", "fast", av, 1.0, 1.0, "motion.rate_dps", v) for v, av in ((0, 1.0), (5, 0.8))),
+        *(case("a", "slow", av, 1.0, 1.0, "motion.rate_dps", v) for v, av in ((0, 1.0), (5, 0.9))),
+        # swept only: ranked at its smallest swept value, and y's error interval is apart from x's
+        *(ranked("b", p, 0.7, (0.6, 0.8), e, ci, 1.0, "exposure_s", 0.01)
+          for p, e, ci in (("x", 3.0, (2.8, 3.2)), ("y", 2.0, (1.9, 2.1)))),
+        ranked("b", "x", 1.0, (0.99, 1.0), 0.1, (0.05, 0.15), 1.0, "exposure_s", 0.02),
+        # one run each: no error interval tells them apart
+        *(ranked("c", p, 1.0, (0.9, 1.0), e, (None, None), 1.0) for p, e in (("p", 1.0), ("q", 2.0))),
+    ]
     table = {line.split(" | ")[0].strip("| "): line for line in headline(rows).splitlines() if line.startswith("| ")}
-    assert table["a"] == ("| a | fast | 1 | 5 / 10 | 10 | motion.rate_dps: slow 5 deg/s, fast 0 deg/s |")
-    assert table["b"].startswith("| b | y (exposure_s = 0.01) | 0.7 | 2 / 4 |")
+    assert table["a"] == ("| a | tie: fast, slow | 1 [0.9, 1] | 5 [4, 6] / 10 | 10 | "
+                          "motion.rate_dps: slow 5 deg/s, fast 0 deg/s |")
+    assert table["b"].startswith("| b | y (at exposure_s = 0.01) | 0.7 [0.6, 0.8] | 2 [1.9, 2.1] / 4 |")
     assert table["b"].endswith("exposure_s: x none, y none |")
+    assert table["c"].startswith("| c | tie: p, q | 1 [0.9, 1] | 1 / 2 |")
+    rows[1]["attitude_error_arcsec_median_ci_low"] = 6.5  # slow's interval now clears fast's: fast alone
+    assert "| a | fast | " in headline(rows)
 
 
 def test_working_rate_table_keeps_axes_apart_and_divides_by_the_same_pipeline_unrestored():

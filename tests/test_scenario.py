@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from starenv.scenario import SCENARIO_DIR, Scenario, ScenarioError, bundled_names, load
+from starenv.scenario import SCENARIO_DIR, AvailabilityThreshold, Scenario, ScenarioError, bundled_names, load
 from starenv.sim.conventions import DEG, angle_between, pointing, unit_to_radec
 from starenv.sim.motion import ConstantRate, LeoNadir, Sequence, Superposed, TorqueFree
 from starenv.sim.optics import Camera, LegendreField, NoDistortion, RadialXY
@@ -110,6 +110,21 @@ def test_paper_001_camera():
     assert sc.exposure_s == 0.06 and sc.mag_limit == 7.0
     assert np.linalg.norm(sc.trajectory.body_rate(0.0)) == pytest.approx(2.5 * DEG)
     assert isinstance(cam.distortion, NoDistortion)
+    # Availability per axis, roll bound from the field: roll error ~ cross-boresight error x focal / half the 6 deg
+    # side, both in px (the file rounds the product to the arcsec).
+    threshold = sc.availability_threshold_arcsec
+    assert threshold.total_arcsec is None and threshold.cross_boresight_arcsec == 60.0
+    assert threshold.roll_arcsec == pytest.approx(60.0 * cam.fx / (cam.width / 2), abs=0.5)
+
+
+def test_an_availability_threshold_is_one_number_or_a_table_of_both_axes():
+    assert load("paper_000").availability_threshold_arcsec == AvailabilityThreshold(total_arcsec=100.0)
+    table = load("paper_000", {"availability_threshold_arcsec": {"roll": 500, "cross_boresight": 12.5}})
+    assert table.availability_threshold_arcsec == AvailabilityThreshold(cross_boresight_arcsec=12.5, roll_arcsec=500.0)
+    edited = load("paper_001", {"availability_threshold_arcsec.roll": 900.0}).availability_threshold_arcsec
+    assert (edited.cross_boresight_arcsec, edited.roll_arcsec) == (60.0, 900.0)
+    again = load(tomllib.loads(table.to_toml()))
+    assert again.availability_threshold_arcsec == table.availability_threshold_arcsec
 
 
 def test_paper_002_camera():
@@ -193,6 +208,7 @@ def test_stress_drops_slew_ends_on_its_target():
 # Validation: one ScenarioError per problem, naming the file, the dotted key and the expected form.
 
 P0 = bundled_file("paper_000")
+P1 = bundled_file("paper_001")
 P3 = bundled_file("paper_003")
 P4 = bundled_file("paper_004")
 TUMBLE = bundled_file("stress_tumble")
@@ -272,6 +288,26 @@ INVALID = {
     "ragged inertia": (
         "stress_tumble", {"motion.inertia_kgm2": [[1.0, 2.0], [3.0]]},
         located(TUMBLE, "motion.inertia_kgm2", "3 principal"),
+    ),
+    "unknown threshold axis": (
+        "paper_000", {"availability_threshold_arcsec": {"cross_boresight": 10.0, "pitch": 5.0}},
+        located(P0, "availability_threshold_arcsec.pitch", "unknown key", "cross_boresight, roll"),
+    ),
+    "threshold table without roll": (
+        "paper_000", {"availability_threshold_arcsec": {"cross_boresight": 10.0}},
+        located(P0, "availability_threshold_arcsec.roll", "a number in (0, 1e+06]", "missing"),
+    ),
+    "negative roll threshold": (
+        "paper_001", {"availability_threshold_arcsec.roll": -1.0},
+        located(P1, "availability_threshold_arcsec.roll", "(0, 1e+06]", "-1.0"),
+    ),
+    "NaN cross-boresight threshold": (
+        "paper_001", {"availability_threshold_arcsec.cross_boresight": NAN},
+        located(P1, "availability_threshold_arcsec.cross_boresight", "a number", "nan"),
+    ),
+    "negative total threshold": (
+        "paper_000", {"availability_threshold_arcsec": -5.0},
+        located(P0, "availability_threshold_arcsec", "(0, 1e+06]", "-5.0"),
     ),
     "non-physical inertia": (
         "stress_tumble", {"motion.inertia_kgm2": [1.0, 1.0, 5.0]}, located(TUMBLE, "motion", "triangle inequality"),

@@ -6,7 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from starenv.scoring import attitude_error, score_stars, summarize, trail_distance
+from starenv.scenario import AvailabilityThreshold
+from starenv.scoring import StepFrame, attitude_error, score_stars, summarize, trail_distance
 from starenv.sim.conventions import ARCSEC
 from starenv.sim.render import StarTruth
 
@@ -84,7 +85,78 @@ def test_attitude_error_splits_into_cross_boresight_and_roll_per_head():
     e = attitude_error(est, true, heads)
     assert e["total_arcsec"] == pytest.approx(20.0, rel=1e-9)
     assert e["heads"][0]["roll_arcsec"] == pytest.approx(20.0) and e["heads"][0]["cross_boresight_arcsec"] < 1e-9
-    assert e["heads"][1]["cross_boresight_arcsec"] == pytest.approx(20.0) and e["heads"][1]["roll_arcsec"] < 1e-9
+    assert e["heads"][1]["cross_boresight_arcsec"] == pytest.approx(20.0) and abs(e["heads"][1]["roll_arcsec"]) < 1e-9
+    assert e["heads"][1]["x_arcsec"] == pytest.approx(20.0)  # head 1's camera +X is body +Z
+
+
+# The scores are computed in double precision from unit quaternions: each component of the error rotation vector
+# carries a rounding error of a few 1e-16 rad (~1e-10 arcsec); 1e-8 arcsec leaves two orders of margin.
+EXACT_ARCSEC = 1e-8
+ROTATIONS = st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(
+    lambda q: np.linalg.norm(q) > 0.1).map(Rotation.from_quat)
+ANGLES_ARCSEC = st.floats(0.01, 3600.0) | st.floats(-3600.0, -0.01)
+CAMERA_AXES = ("x_arcsec", "y_arcsec", "roll_arcsec")
+BODY_AXES = ("x_arcsec", "y_arcsec", "z_arcsec")
+
+
+@settings(max_examples=200, deadline=None)
+@given(ROTATIONS, st.lists(ROTATIONS, min_size=1, max_size=4), st.data(), ANGLES_ARCSEC)
+def test_a_rotation_about_one_camera_axis_scores_its_signed_angle_on_that_axis(true, mountings, data, angle):
+    """The estimate is the truth turned by ``angle`` about camera axis ``axis`` of head ``h`` (body axis ``u = M_h^-1
+    axis``): that head scores exactly ``angle`` on it and 0 on the others; every head ``j`` scores ``angle * M_j u``,
+    the body ``angle * u``; the opposite turn flips every sign."""
+    h = data.draw(st.integers(0, len(mountings) - 1))
+    axis = data.draw(st.integers(0, 2))
+    u = mountings[h].inv().apply(np.eye(3)[axis])
+    for sign in (1.0, -1.0):
+        est = Rotation.from_rotvec(sign * angle * ARCSEC * u) * true
+        e = attitude_error(est, true, mountings)
+        expected = np.zeros(3)
+        expected[axis] = sign * angle
+        np.testing.assert_allclose([e["heads"][h][k] for k in CAMERA_AXES], expected, rtol=0, atol=EXACT_ARCSEC)
+        for j, m in enumerate(mountings):
+            in_camera = sign * angle * m.apply(u)
+            np.testing.assert_allclose([e["heads"][j][k] for k in CAMERA_AXES], in_camera, rtol=0, atol=EXACT_ARCSEC)
+            assert e["heads"][j]["cross_boresight_arcsec"] == pytest.approx(np.hypot(*in_camera[:2]), abs=EXACT_ARCSEC)
+        np.testing.assert_allclose([e["body"][k] for k in BODY_AXES], sign * angle * u, rtol=0, atol=EXACT_ARCSEC)
+        assert e["total_arcsec"] == pytest.approx(abs(angle), abs=EXACT_ARCSEC)
+
+
+@settings(max_examples=100, deadline=None)
+@given(ROTATIONS, ROTATIONS, st.integers(0, 2), ANGLES_ARCSEC)
+def test_a_rotation_about_one_body_axis_scores_its_signed_angle_on_that_axis(true, mounting, axis, angle):
+    est = Rotation.from_rotvec(angle * ARCSEC * np.eye(3)[axis]) * true
+    body = attitude_error(est, true, [mounting])["body"]
+    expected = np.zeros(3)
+    expected[axis] = angle
+    np.testing.assert_allclose([body[k] for k in BODY_AXES], expected, rtol=0, atol=EXACT_ARCSEC)
+    back = attitude_error(Rotation.from_rotvec(-angle * ARCSEC * np.eye(3)[axis]) * true, true, [mounting])["body"]
+    np.testing.assert_allclose([back[k] for k in BODY_AXES], -expected, rtol=0, atol=EXACT_ARCSEC)
+
+
+# Two heads at right angles: head 0 looks along body +Z, head 1 along body +X (its camera +X is body -Z), so a turn
+# about body +Z is head 0's roll and across head 1's boresight.
+ORTHOGONAL = [Rotation.identity(), Rotation.from_euler("y", -90, degrees=True)]
+TABLE = AvailabilityThreshold(cross_boresight_arcsec=50.0, roll_arcsec=200.0)
+
+
+@pytest.mark.parametrize("heads, rotvec_arcsec, threshold, within", [
+    (ORTHOGONAL[:1], [0.0, 0.0, 150.0], TABLE, True),  # roll 150 < 200, cross 0
+    (ORTHOGONAL[:1], [0.0, 0.0, -150.0], TABLE, True),  # the roll's size counts, not its sign
+    (ORTHOGONAL[:1], [0.0, 0.0, 250.0], TABLE, False),  # roll 250 > 200
+    (ORTHOGONAL[:1], [40.0, 0.0, 150.0], TABLE, True),  # cross 40 < 50, roll 150 < 200
+    (ORTHOGONAL[:1], [30.0, -41.0, 0.0], TABLE, False),  # cross hypot(30, 41) > 50
+    (ORTHOGONAL, [0.0, 0.0, 150.0], TABLE, False),  # head 0's roll, head 1's cross-boresight 150 > 50
+    (ORTHOGONAL, [0.0, 40.0, 0.0], TABLE, True),  # across both boresights, 40 < 50
+    (ORTHOGONAL[:1], [0.0, 0.0, 150.0], AvailabilityThreshold(total_arcsec=100.0), False),  # total 150 > 100
+    (ORTHOGONAL, [0.0, 60.0, 80.0], AvailabilityThreshold(total_arcsec=100.5), True),  # total 100 < 100.5
+])
+def test_within_threshold_follows_the_total_or_every_heads_axes(heads, rotvec_arcsec, threshold, within):
+    true = Rotation.from_euler("zyx", [40, -10, 75], degrees=True)
+    est = Rotation.from_rotvec(np.array(rotvec_arcsec) * ARCSEC) * true
+    step = StepFrame(est, attitude_error(est, true, heads), threshold)
+    assert step.within is within
+    assert not StepFrame(None, {}, threshold).within
 
 
 def test_summary_takes_median_and_p95_over_steps_with_a_value():

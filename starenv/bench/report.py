@@ -1,10 +1,16 @@
 """Aggregating a bench's run files into tables (markdown, CSV), plots (PNG) and ``report.md``.
 
-Cases are (scenario, swept key and value, pipeline); a case pools the steps of all its seeds.  Per case, every
+Cases are (scenario with its group's fixed overrides, swept key and value, pipeline:
+``starenv.bench.cases``); a case pools the steps of all its seeds.  Per case, every
 metric of ``starenv.metrics`` that its steps carry gets the statistics its declaration names, over the steps that
 have a value (attitude errors: over available steps only), one ``summary.csv`` column each
 (``starenv.metrics.column``: ``share`` as the metric's own name, e.g. ``within_threshold`` = availability, ``fixed``;
-``mean``, ``median``, ``p95`` (linear interpolation) as suffixes).  The report's tables show the metrics with a
+``mean``, ``rms``, ``median``, ``p95`` (linear interpolation) as suffixes), each share and each statistic of an
+attitude error (arcsec) with its 95 % interval over runs in two more columns (``..._ci_low``, ``..._ci_high``:
+exact binomial on the pooled steps for a share, bootstrap over runs otherwise; empty with one run).  A metric a
+pipeline role measures is left empty (``-``) for a pipeline without that role (``MEASURED_BY``: the distortion left
+after correction needs a corrector).  ``datasheet.csv`` and the report's opening tables:
+``starenv.bench.datasheet``.  The report's tables show the metrics with a
 ``label``: the accuracy table those of ``info["scores"]`` and the flat record, one table per other scope
 (restoration, filter: only cases that carry it) and the latency per agent role, each with a legend.  A key no
 metric declares is an error naming it.
@@ -13,29 +19,41 @@ metric declares is an error naming it.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
+import multiprocessing
+import os
 import re
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from starenv import metrics
+from starenv.bench import datasheet
+from starenv.bench.cases import (
+    CI_HIGH,
+    CI_LOW,
+    WORKING_SHARE,
+    Case,
+    case_name,
+    compared,
+    fmt_interval,
+    is_rate_sweep,
+    load_cases,
+    row_interval,
+    set_overrides,
+    share_interval,
+    sweep_label,
+    working_limit,
+)
+from starenv.bench.cases import fmt as _fmt
 from starenv.bench.runner import read_run
-from starenv.scoring import derive
 
 ROLE_NAMES = {"pipeline": "whole pipeline"}  # latency_pipeline_ms: one whole policy call
 UNITS = {"_dps": "deg/s", "_deg": "deg", "_arcsec": "arcsec", "_hz": "Hz", "_s": "s", "_px": "px", "_um": "um",
          "_mm": "mm", "_e": "e-", "_rthr": "deg/sqrt(h)"}
-
-
-def sweep_label(sweep: dict) -> str:
-    """A sweep's name in tables: its key, and the axis a magnitude is swept along (``motion.rate_dps about [1, 0,
-    0]``), so that sweeps of one key along different axes stay apart."""
-    axis = sweep.get("axis")
-    if axis is None:
-        return sweep["key"]
-    return f"{sweep['key']} about [{', '.join(_fmt(float(a)) for a in axis)}]"
 
 
 def key_unit(key: str) -> str:
@@ -44,36 +62,50 @@ def key_unit(key: str) -> str:
     return next((u for suffix, u in UNITS.items() if last.endswith(suffix)), "")
 
 
-def _label(value) -> str:
-    return "" if value is None else json.dumps(value)
+MEASURED_BY = {"correction_": "corrector"}  # metric-name prefix -> the pipeline role without which it means nothing
+INTERVAL_UNITS = (metrics.ARCSEC,)  # the statistics of these metrics carry a bootstrap interval (shares: binomial)
 
 
-def aggregate(run_files: list[Path]) -> list[dict]:
-    """One row per case, in first-seen order: identity columns, then the statistics described in the module doc."""
-    cases: dict[tuple, dict] = {}
-    for path in run_files:
-        header, steps, _ = read_run(path)
-        ident = header["identity"]
-        sweep = ident["sweep"] or {}
-        key = (ident["scenario"], sweep_label(sweep) if sweep else None, _label(sweep.get("value")),
-               ident["pipeline"]["name"])
-        case = cases.setdefault(key, {"ident": ident, "runs": 0, "records": []})
-        case["runs"] += 1
-        case["records"].extend(derive(r) for r in steps)
-    rows = []
-    for (scenario, sweep_key, _, pipeline), case in cases.items():
-        sweep = case["ident"]["sweep"] or {}
-        row = {"scenario": scenario, "sweep_key": sweep_key or "", "sweep_value": sweep.get("value", ""),
-               "pipeline": pipeline, "runs": case["runs"], "steps": len(case["records"]),
-               "pipeline_agents": _choice(case["ident"]["pipeline"]),
-               "pipeline_unrestored": _choice(case["ident"]["pipeline"], without="deblurrer")}
-        records = case["records"]
-        for key in metrics.order({k for r in records for k in r if k not in metrics.INDEX_KEYS}):
-            values = np.array([r[key] for r in records if r.get(key) is not None], dtype=np.float64)
-            for stat in metrics.lookup(key).statistics:
-                row[metrics.column(key, stat)] = metrics.STATISTICS[stat].function(values) if len(values) else None
-        rows.append(row)
-    return rows
+def case_identity(case: Case) -> dict:
+    """A case's identity columns (``set``: its group's fixed overrides as JSON, empty when none)."""
+    ident = case.ident
+    sweep = ident["sweep"] or {}
+    fixed = set_overrides(ident)
+    return {"scenario": ident["scenario"], "set": json.dumps(fixed, sort_keys=True) if fixed else "",
+            "sweep_key": sweep_label(sweep) if sweep else "", "sweep_value": sweep.get("value", ""),
+            "pipeline": ident["pipeline"]["name"], "runs": len(case.runs), "steps": len(case.records)}
+
+
+def _measured(key: str, records: list[dict]) -> bool:
+    """Whether the role a metric needs (``MEASURED_BY``) ran in these steps (it has a latency there)."""
+    role = next((r for prefix, r in MEASURED_BY.items() if key.startswith(prefix)), None)
+    return role is None or any(r.get(f"latency_{role}_ms") is not None for r in records)
+
+
+def summary_row(case: Case) -> dict:
+    """A case's ``summary.csv`` row: identity columns, then the statistics and intervals described in the module
+    doc."""
+    row = {**case_identity(case), "pipeline_agents": _choice(case.ident["pipeline"]),
+           "pipeline_unrestored": _choice(case.ident["pipeline"], without="deblurrer")}
+    records = case.records
+    keys = {k for r in records for k in r if k not in metrics.INDEX_KEYS}
+    for key in metrics.order(k for k in keys if _measured(k, records)):
+        metric = metrics.lookup(key)
+        values = np.array([r[key] for r in records if r.get(key) is not None], dtype=np.float64)
+        for stat in metric.statistics:
+            column = metrics.column(key, stat)
+            row[column] = metrics.STATISTICS[stat].function(values) if len(values) else None
+            if stat == "share":
+                row[column + CI_LOW], row[column + CI_HIGH] = share_interval(values)
+            elif metric.unit in INTERVAL_UNITS:
+                row[column + CI_LOW], row[column + CI_HIGH] = case.interval(key, stat)
+    return row
+
+
+def aggregate(run_files: list[Path], cases: list[Case] | None = None) -> list[dict]:
+    """One row per case (:func:`summary_row`), in first-seen order (``cases``: the run files already loaded,
+    ``starenv.bench.cases.load_cases``)."""
+    return [summary_row(case) for case in (load_cases(run_files) if cases is None else cases)]
 
 
 def _choice(pipeline: dict, without: str | None = None) -> str:
@@ -83,8 +115,10 @@ def _choice(pipeline: dict, without: str | None = None) -> str:
     return json.dumps([agents, options, pipeline.get("catalog_mag_limit")], sort_keys=True)
 
 
-def write_csv(rows: list[dict], path: Path) -> None:
-    columns = list(dict.fromkeys(k for r in rows for k in r))
+def write_csv(rows: list[dict], path: Path, columns: tuple[str, ...] | None = None) -> None:
+    """Rows as CSV (``columns``: their order; default every key in first-seen order): None as an empty cell, a
+    list as JSON."""
+    columns = list(dict.fromkeys(k for r in rows for k in r)) if columns is None else list(columns)
     with open(path, "w", newline="", encoding="utf-8") as f:
         w = csv.DictWriter(f, columns, restval="")
         w.writeheader()
@@ -92,16 +126,8 @@ def write_csv(rows: list[dict], path: Path) -> None:
             w.writerow({k: "" if v is None else json.dumps(v) if isinstance(v, list) else v for k, v in r.items()})
 
 
-def _fmt(v) -> str:
-    if v is None or v == "":
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.3g}" if math.isfinite(v) else str(v)
-    return str(v)
-
-
 CASE_HEAD = ["scenario", "sweep", "pipeline", "runs", "steps"]
-ACCURACY_SCOPES = ("step", "attitude", "head_attitude", "head", "record")
+ACCURACY_SCOPES = ("step", "attitude", "body_attitude", "head_attitude", "head", "record")
 # (section heading, scopes, whether every case has a row (else only the cases with a value in those scopes))
 TABLES = (
     ("Accuracy", ACCURACY_SCOPES, True),
@@ -113,7 +139,7 @@ TABLES = (
 
 def _case_cells(r: dict) -> list[str]:
     sweep = f"{r['sweep_key']} = {_fmt(r['sweep_value'])}" if r["sweep_key"] else "-"
-    return [r["scenario"], sweep, r["pipeline"], str(r["runs"]), str(r["steps"])]
+    return [case_name(r), sweep, r["pipeline"], str(r["runs"]), str(r["steps"])]
 
 
 def _instances(rows: list[dict], metric: metrics.Metric) -> list[tuple[str, dict[str, str]]]:
@@ -162,7 +188,7 @@ def markdown_tables(rows: list[dict]) -> str:
         heads = [_heading(m, params) for m, _, params in columns]
         lines = ["| " + " | ".join(CASE_HEAD + heads) + " |", "|" + "---|" * (len(CASE_HEAD) + len(heads))]
         for r in keep:
-            cells = [" / ".join(_fmt(r.get(metrics.column(key, s))) for s in m.columns_shown)
+            cells = [" / ".join(fmt_interval(*row_interval(r, metrics.column(key, s))) for s in m.columns_shown)
                      for m, key, _ in columns]
             lines.append("| " + " | ".join(_case_cells(r) + cells) + " |")
         out.append(f"## {title}\n\n" + "\n".join(lines) + "\n\n" + _legend([m for m, _, _ in columns]) + "\n")
@@ -170,43 +196,49 @@ def markdown_tables(rows: list[dict]) -> str:
 
 
 DODGE_MARKERS = ("o", "s", "^", "D", "v", "P")
-WORKING_SHARE = 0.9  # a swept value "works" for a pipeline when this share of its steps has a fix
+
+
+def _figure(r: dict, column: str) -> tuple:
+    """(value, low, high) of a column as floats (None where absent)."""
+    return tuple(None if v is None else float(v) for v in row_interval(r, column))
 
 
 def _rank(r: dict) -> tuple:
-    """Sort key of a case, best first: higher availability, then lower median attitude error, then lower latency."""
-    def num(v, missing):
-        return missing if v is None or v == "" else float(v)
-    return (-num(r.get("within_threshold"), 0.0), num(r.get("attitude_error_arcsec_median"), math.inf),
-            num(r.get("latency_pipeline_ms_median"), math.inf))
+    """Sort key of a case by point estimates, best first: higher availability, then lower median attitude error."""
+    avail, err = _figure(r, "within_threshold")[0], _figure(r, "attitude_error_arcsec_median")[0]
+    return (-(avail if avail is not None else 0.0), err if err is not None else math.inf)
 
 
-def working_limit(rows: list[dict], share: str = "fixed") -> float | None:
-    """Largest swept value up to which (from the smallest swept value on) every value's ``share`` (``fixed``, or
-    ``within_threshold`` for availability) reaches ``WORKING_SHARE``; None when the smallest already fails.
-    ``rows``: one pipeline's cases of one sweep."""
-    limit = None
-    for r in sorted(rows, key=lambda r: r["sweep_value"]):
-        if (r.get(share) or 0.0) < WORKING_SHARE:
-            break
-        limit = r["sweep_value"]
-    return limit
+def _apart(a: tuple, b: tuple) -> bool:
+    """Whether two (value, low, high) figures are told apart: both have an interval and the intervals do not
+    overlap."""
+    if None in a or None in b:
+        return False
+    return a[2] < b[1] or b[2] < a[1]
+
+
+def distinguishable(a: dict, b: dict) -> bool:
+    """Whether two cases are told apart: their availability intervals are disjoint, or their median attitude
+    error intervals are."""
+    return any(_apart(_figure(a, c), _figure(b, c)) for c in ("within_threshold", "attitude_error_arcsec_median"))
+
+
+def best_cases(cases: list[dict]) -> list[dict]:
+    """The best case by :func:`_rank`, then every other case not :func:`distinguishable` from it (a tie)."""
+    ranked = sorted(cases, key=_rank)
+    return [ranked[0], *(r for r in ranked[1:] if not distinguishable(ranked[0], r))]
 
 
 def headline(rows: list[dict]) -> str:
-    """Per scenario: the best pipeline (by availability, then median error, then latency) of its cases without a
-    sweep (or, for a swept-only scenario, at the smallest swept value), with its availability, median / p95
-    attitude error and median pipeline latency; and per numeric sweep the working limit of each pipeline, best
-    first."""
+    """Per scenario: the best pipeline of the cases it compares (``starenv.bench.cases.compared``), or the
+    pipelines tied with it (:func:`best_cases`), with availability, median / p95 attitude error (95 % intervals)
+    and median pipeline latency (shown, never used to rank); and per numeric sweep the working limit of each
+    pipeline, best first."""
     lines = ["| scenario | best pipeline | availability | att. err. median / p95 (arcsec) | latency median (ms) "
              f"| working up to (fixed >= {WORKING_SHARE:g}) |", "|---|---|---|---|---|---|"]
-    for scenario in dict.fromkeys(r["scenario"] for r in rows):
-        cases = [r for r in rows if r["scenario"] == scenario]
-        plain = [r for r in cases if not r["sweep_key"]]
-        if not plain:
-            lowest = min(r["sweep_value"] for r in cases)
-            plain = [r for r in cases if r["sweep_value"] == lowest]
-        best = min(plain, key=_rank)
+    for name, (chosen, where) in compared(rows).items():
+        cases = [r for r in rows if case_name(r) == name]
+        best = best_cases(chosen)
         sweeps = []
         for key in dict.fromkeys(r["sweep_key"] for r in cases if r["sweep_key"]):
             swept = [r for r in cases if r["sweep_key"] == key and isinstance(r["sweep_value"], int | float)]
@@ -217,15 +249,22 @@ def headline(rows: list[dict]) -> str:
             sweeps.append(f"{key}: " + ", ".join(
                 f"{p} {'none' if limits[p] is None else _fmt(limits[p]) + (' ' + unit if unit else '')}"
                 for p in order))
-        where = "" if not best["sweep_key"] else f" ({best['sweep_key']} = {_fmt(best['sweep_value'])})"
-        lines.append(f"| {scenario} | {best['pipeline']}{where} | {_fmt(best.get('within_threshold'))} | "
-                     f"{_fmt(best.get('attitude_error_arcsec_median'))} / {_fmt(best.get('attitude_error_arcsec_p95'))}"
-                     f" | {_fmt(best.get('latency_pipeline_ms_median'))} | {'; '.join(sweeps) or '-'} |")
-    return ("## Headline\n\nPer scenario, its best pipeline (highest availability, then lowest median attitude "
-            "error, then lowest latency) and, per swept key, how far each pipeline keeps working: the largest swept "
-            f"value up to which every value has a fix (solved, within the threshold) on >= {WORKING_SHARE:g} of "
-            "its steps (none: not even the "
-            "smallest).\n\n" + "\n".join(lines) + "\n")
+        top = best[0]
+        who = top["pipeline"] if len(best) == 1 else "tie: " + ", ".join(r["pipeline"] for r in best)
+        at = f" (at {where})" if where else ""
+        errors = " / ".join(fmt_interval(*row_interval(top, f"attitude_error_arcsec_{s}")) for s in ("median", "p95"))
+        lines.append(f"| {name} | {who}{at} | {fmt_interval(*row_interval(top, 'within_threshold'))} | {errors} | "
+                     f"{_fmt(top.get('latency_pipeline_ms_median'))} | {'; '.join(sweeps) or '-'} |")
+    return ("## Headline\n\nPer scenario, its best pipeline: the highest availability, then the lowest median "
+            "attitude error, by point estimate.  A pipeline whose 95 % intervals overlap the best's on both "
+            "figures cannot be told apart from it: the cell says **tie** and lists them, best first (the figures "
+            "are the first one's); a figure without an interval (one run) tells nothing apart.  Latency is shown, "
+            "never used to rank.  Scenarios are ranked on their cases without a sweep; a scenario whose cases are "
+            "all swept is ranked at the smallest value of its first swept key, named in the cell.  Intervals: "
+            "exact binomial over the pooled steps for availability, percentile bootstrap over runs (seeds) for "
+            "errors.  Per swept key, how far each pipeline keeps working: the largest swept value up to which "
+            f"every value has a fix (solved, within the threshold) on >= {WORKING_SHARE:g} of its steps (none: not "
+            "even the smallest).\n\n" + "\n".join(lines) + "\n")
 
 
 def _restores(rows: list[dict]) -> bool:
@@ -239,10 +278,9 @@ def working_rates(rows: list[dict]) -> str:
     coasting through frames counts there) and, for a restoring pipeline, its working rate over that of the same
     pipeline without its deblurrer when the bench ran it ("x unrestored"); '' when the bench sweeps no rate."""
     out = []
-    groups = dict.fromkeys((r["scenario"], r["sweep_key"]) for r in rows
-                           if r["sweep_key"].split(" about ", 1)[0].endswith("rate_dps"))
+    groups = dict.fromkeys((case_name(r), r["sweep_key"]) for r in rows if is_rate_sweep(r["sweep_key"]))
     for scenario, key in groups:
-        cases = [r for r in rows if (r["scenario"], r["sweep_key"]) == (scenario, key)
+        cases = [r for r in rows if (case_name(r), r["sweep_key"]) == (scenario, key)
                  and isinstance(r["sweep_value"], int | float)]
         values = sorted({r["sweep_value"] for r in cases})
         per = {p: [r for r in cases if r["pipeline"] == p] for p in dict.fromkeys(r["pipeline"] for r in cases)}
@@ -253,19 +291,20 @@ def working_rates(rows: list[dict]) -> str:
         lines = [f"### {scenario}: {key} ({', '.join(map(str, steps))} steps per rate)", "",
                  "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for p in sorted(per, key=lambda p: (-(limits[p] if limits[p] is not None else -1.0), p)):
-            at = {r["sweep_value"]: r.get("fixed") for r in per[p]}
+            at = {r["sweep_value"]: fmt_interval(*row_interval(r, "fixed")) for r in per[p]}
             lim, coasting = limits[p], working_limit(per[p], "within_threshold")
             twin = by_agents.get(per[p][0].get("pipeline_unrestored")) if _restores(per[p]) else None
             base = limits.get(twin) if twin else None
             ratio = f"{lim / base:.2f} ({twin})" if lim is not None and base else "-"
             cells = [p, "yes" if _restores(per[p]) else "no", "none" if lim is None else _fmt(lim), ratio,
-                     "none" if coasting is None else _fmt(coasting), *(_fmt(at.get(v)) for v in values)]
+                     "none" if coasting is None else _fmt(coasting), *(at.get(v, "-") for v in values)]
             lines.append("| " + " | ".join(cells) + " |")
         out.append("\n".join(lines))
     if not out:
         return ""
     return ("## Working rate\n\nShare of steps with a fix (the frame solved: >= 3 correct ids and none wrong, and "
-            "the attitude within the scenario's threshold) at each swept rate (deg/s); a pipeline's working rate is "
+            "the attitude within the scenario's threshold) at each swept rate (deg/s), with its exact binomial 95 % "
+            "interval over the pooled steps; a pipeline's working rate is "
             f"the largest swept rate that, with every smaller one, has a fix on >= {WORKING_SHARE:g} of its steps.  "
             "\"by availability\": the same limit on the share of steps with an attitude within the threshold, "
             "whatever gave it -- a predictor or filter carries its attitude on the gyro through frames it cannot "
@@ -280,8 +319,20 @@ def _slug(*parts: str) -> str:
     return "-".join(re.sub(r"[^A-Za-z0-9_-]+", "_", p).strip("_") for p in parts if p)
 
 
-def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[str, Path]]:
-    """Error and ID rate vs swept value per (scenario, key), and latency per role per scenario; (title, path)."""
+def _case_slug(row: dict) -> str:
+    """A scenario's file-name part: its name, and for a group's fixed overrides (``set``) a short hash of them
+    (their text can be longer than a file name may be)."""
+    if not row.get("set"):
+        return row["scenario"]
+    return f"{row['scenario']}-set{hashlib.sha256(row['set'].encode()).hexdigest()[:8]}"
+
+
+def plot(rows: list[dict], run_files: list[Path], folder: Path, cases: list[Case] | None = None,
+         sheet: list[dict] | None = None, jobs: int | None = None) -> list[tuple[str, Path]]:
+    """Error, ID rate, availability and fixes vs swept value per (scenario, key), with their 95 % intervals (bands,
+    error bars); latency per role per scenario; with ``cases`` (and their summary ``rows``, same order) and their
+    datasheet rows ``sheet``, the datasheet figures and the per-axis error series and spectra
+    (:func:`_plot_datasheet`, :func:`_plot_spectra` on ``jobs`` processes); (title, path)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -292,7 +343,8 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         if r["sweep_key"] and isinstance(r["sweep_value"], int | float):
-            groups.setdefault((r["scenario"], r["sweep_key"]), []).append(r)
+            groups.setdefault((case_name(r), r["sweep_key"]), []).append(r)
+    slugs = {case_name(r): _case_slug(r) for r in rows}
     for (scenario, key), group in groups.items():
         unit = key_unit(key)
         xlabel = f"{key} ({unit})" if unit else key
@@ -306,34 +358,47 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
             pipelines = list(dict.fromkeys(r["pipeline"] for r in group))
             values = sorted({r["sweep_value"] for r in group})
             step = min(np.diff(values)) if len(values) > 1 else 1.0
+            banded = False
             for i, pipeline in enumerate(pipelines):
                 # identical pipelines would hide each other: each is shifted sideways by a fraction of the sweep
                 # step and drawn with its own marker, the first ones largest so that later ones sit inside them
                 dodge = (i - (len(pipelines) - 1) / 2) * 0.08 * step
                 marker, size = DODGE_MARKERS[i % len(DODGE_MARKERS)], 9 - 1.5 * min(i, 4)
-                pts = sorted((r["sweep_value"], *(r.get(c) for c in cols)) for r in group if r["pipeline"] == pipeline)
-                x = [p[0] + dodge for p in pts]
-                line = ax.plot(x, [np.nan if p[1] is None else p[1] for p in pts], marker=marker, markersize=size,
-                               linestyle="-", alpha=0.85, label=f"{pipeline}" + (" median" if len(cols) > 1 else ""))[0]
-                if len(cols) > 1:
-                    ax.plot(x, [np.nan if p[2] is None else p[2] for p in pts], marker=marker, markersize=size * 0.7,
-                            linestyle="--", fillstyle="none", alpha=0.85, color=line.get_color(),
-                            label=f"{pipeline} p95")
+                mine = sorted((r for r in group if r["pipeline"] == pipeline), key=lambda r: r["sweep_value"])
+                x = np.array([r["sweep_value"] + dodge for r in mine], dtype=float)
+                color = None
+                for j, col in enumerate(cols):
+                    fig_values = np.array([[np.nan if v is None else v for v in _figure(r, col)] for r in mine])
+                    style = {"linestyle": "-", "markersize": size} if j == 0 else {
+                        "linestyle": "--", "markersize": size * 0.7, "fillstyle": "none"}
+                    label = pipeline + ("" if len(cols) == 1 else " " + col.rsplit("_", 1)[-1])
+                    color = ax.plot(x, fig_values[:, 0], marker=marker, alpha=0.85, color=color, label=label,
+                                    **style)[0].get_color()
+                    if logy:  # the 95 % interval over runs as a band (none with one run)
+                        banded |= bool(np.isfinite(fig_values[:, 1:]).any())
+                        ax.fill_between(x, fig_values[:, 1], fig_values[:, 2], color=color, alpha=0.12, linewidth=0)
+                    elif np.isfinite(fig_values[:, 1:]).any():  # a share's exact binomial interval as error bars
+                        ax.errorbar(x, fig_values[:, 0], yerr=np.abs(fig_values[:, 1:].T - fig_values[:, 0]),
+                                    fmt="none", ecolor=color, alpha=0.6, capsize=2)
             if len(pipelines) > 1:
                 xlabel_note = f"  [pipelines offset by {0.08 * step:.3g} for visibility]"
             else:
                 xlabel_note = ""
+            if logy and not banded:
+                ylabel_shown = ylabel + ", one run: no interval"
+            else:
+                ylabel_shown = ylabel + (", 95 % band over runs" if logy else "")
             if logy:
                 ax.set_yscale("log")
             else:
                 ax.set_ylim(-0.02, 1.02)
             ax.set_xlabel(xlabel + xlabel_note)
-            ax.set_ylabel(ylabel)
+            ax.set_ylabel(ylabel_shown)
             title = f"{scenario}: {ylabel.split(' (')[0]} vs {key.rsplit('.', 1)[-1]}"
             if what in ("availability", "fixed"):
                 ax.axhline(WORKING_SHARE, color="k", linewidth=0.8, linestyle=":")
             ax.grid(True, which="both", alpha=0.3)
-            made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, key, what)}.png")))
+            made.append((title, _save(fig, ax, title, folder / f"{_slug(slugs[scenario], key, what)}.png")))
     by_scenario: dict[str, dict[str, dict[str, list[float]]]] = {}
     for f in run_files:
         header, steps, _ = read_run(f)
@@ -345,6 +410,9 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
                 if found is not None and found[0].scope == "latency" and v is not None:
                     lat.setdefault(found[1]["role"], []).append(v)
     made += _plot_distortion(run_files, folder, plt)
+    if cases is not None and sheet is not None:
+        made += _plot_datasheet(rows, sheet, folder, plt)
+        made += _plot_spectra(cases, rows, sheet, folder, jobs)
     for scenario, per in by_scenario.items():
         roles = sorted({role for lat in per.values() for role in lat})
         if not roles:
@@ -369,6 +437,130 @@ def plot(rows: list[dict], run_files: list[Path], folder: Path) -> list[tuple[st
         ax.grid(True, axis="y", which="both", alpha=0.3)
         made.append((title, _save(fig, ax, title, folder / f"{_slug(scenario, 'latency')}.png")))
     return made
+
+
+SHEET_TERMS = (("bias", "bias"), ("nea", "NEA"), ("total3s", "total 3 sigma"))
+
+
+def _sheet_matches(sheet_row: dict, row: dict) -> bool:
+    """Whether a datasheet row belongs to the case of a summary row."""
+    return all(sheet_row[k] == row[k] for k in ("scenario", "set", "sweep_key", "sweep_value", "pipeline"))
+
+
+def _axis_label(frame, axis: str) -> str:
+    frame_name = "body" if frame == datasheet.BODY else f"h{frame}"
+    return f"{frame_name} {'z' if frame == datasheet.BODY and axis == 'roll' else axis}"
+
+
+def _plot_datasheet(rows: list[dict], sheet: list[dict], folder: Path, plt) -> list[tuple[str, Path]]:
+    """Per scenario, the datasheet's bias, NEA and total 3 sigma per head (and body) and axis, one marker per pipeline
+    of the cases its headline compares, with the 95 % interval over runs as error bars."""
+    made = []
+    for name, (chosen, _) in compared(rows).items():
+        per = {}
+        for r in chosen:
+            mine = [s for s in sheet if _sheet_matches(s, r)]
+            per[r["pipeline"]] = [s for s in mine if s["head"] in datasheet.shown_frames([x["head"] for x in mine])]
+        ticks = list(dict.fromkeys((s["head"], a) for ss in per.values() for s in ss for a in datasheet.AXES))
+        if not ticks:
+            continue
+        fig, axes = plt.subplots(len(SHEET_TERMS), 1, figsize=(max(7.0, 0.6 * len(ticks) * len(per) ** 0.5), 9),
+                                 sharex=True)
+        for ax, (term, label) in zip(axes, SHEET_TERMS, strict=True):
+            for i, (pipeline, ss) in enumerate(per.items()):
+                by_tick = {(s["head"], a): _figure(s, f"{term}_{a}_arcsec") for s in ss for a in datasheet.AXES}
+                x = np.arange(len(ticks)) + (i - (len(per) - 1) / 2) * 0.8 / max(len(per), 1)
+                fig_values = np.array([[np.nan if v is None else v for v in by_tick.get(t, (None,) * 3)]
+                                       for t in ticks])
+                yerr = np.abs(fig_values[:, 1:].T - fig_values[:, 0])
+                ax.errorbar(x, fig_values[:, 0], yerr=np.where(np.isfinite(yerr), yerr, 0.0), fmt=DODGE_MARKERS[
+                    i % len(DODGE_MARKERS)], color=f"C{i}", capsize=3, label=pipeline)
+            if term == "bias":
+                ax.axhline(0.0, color="k", linewidth=0.8)
+            ax.set_ylabel(f"{label} (arcsec)")
+            ax.grid(True, axis="y", alpha=0.3)
+        axes[-1].set_xticks(range(len(ticks)), [_axis_label(*t) for t in ticks])
+        axes[-1].set_xlabel("head and axis (camera +X, +Y, roll about the boresight; body +X, +Y, +Z)")
+        title = f"{name}: bias, NEA and total 3 sigma per axis (95 % intervals over runs)"
+        made.append((title, _save(fig, axes[0], title, folder / f"{_slug(_case_slug(chosen[0]), 'datasheet')}.png")))
+    return made
+
+
+def _longest_finite(values: np.ndarray) -> np.ndarray:
+    """The longest run of consecutive finite values."""
+    best, start = (0, 0), None
+    for k, ok in enumerate([*np.isfinite(values), False]):
+        if ok and start is None:
+            start = k
+        elif not ok and start is not None:
+            best, start = max(best, (k - start, start)), None
+    return values[best[1]: best[1] + best[0]]
+
+
+MIN_SPECTRUM_SAMPLES = 8  # shorter stretches of consecutive estimates give no spectrum
+MAX_SEGMENT = 64  # Welch segment length (samples) at most: longer series average more segments
+
+
+def _plot_spectra(cases: list[Case], rows: list[dict], sheet: list[dict], folder: Path,
+                  jobs: int | None = None) -> list[tuple[str, Path]]:
+    """Per compared case (``starenv.bench.cases.compared``), one figure per pipeline (:func:`_spectrum_figure`), drawn
+    on ``jobs`` forked processes (:func:`forked_map`)."""
+    compared_rows = {id(r) for chosen, _ in compared(rows).values() for r in chosen}
+    tasks = [(case, row, [s for s in sheet if _sheet_matches(s, row)], folder)
+             for case, row in zip(cases, rows, strict=True) if id(row) in compared_rows]
+    return [made for made in forked_map(_spectrum_figure, tasks, jobs) if made is not None]
+
+
+def _spectrum_figure(task: tuple) -> tuple[str, Path] | None:
+    """One case's figure: per head the signed error series per axis of every run against time, and their power
+    spectral density (Welch, averaged over runs, mean removed: the bias is the first panel's offset, the NEA the flat
+    floor drawn as a dotted line, the low-frequency part the rise above it at low frequencies); (title, path), or
+    None without frame times.  ``task``: (case, its summary row, its datasheet rows, folder)."""
+    import matplotlib.pyplot as plt
+    from scipy.signal import welch
+
+    case, row, sheet_rows, folder = task
+    shown = [f for f in datasheet.frames(case) if f != datasheet.BODY] or [datasheet.BODY]  # per head
+    times = case.series("time_s")
+    if not all(len(t) and np.isfinite(t).all() for t in times):
+        return None
+    height = 3.2 * len(shown)  # fixed margins (inches): no tight_layout pass, which costs a second drawing
+    fig, axes = plt.subplots(len(shown), 2, figsize=(11, height), squeeze=False)
+    fig.subplots_adjust(left=0.08, right=0.98, wspace=0.24, top=1 - 0.35 / height, bottom=0.55 / height,
+                        hspace=0.9 / 3.2)
+    for (ax_t, ax_f), frame in zip(axes, shown, strict=True):
+        sheet_row = next((s for s in sheet_rows if s["head"] == frame), {})
+        for j, (axis, key) in enumerate(datasheet.axis_keys(frame).items()):
+            color, label = f"C{j}", _axis_label(frame, axis)
+            series = case.series(key)
+            for k, (t, e) in enumerate(zip(times, series, strict=True)):
+                ax_t.plot(t - t[0], e, color=color, linewidth=0.8, alpha=0.5, label=label if k == 0 else None)
+            stretches = [_longest_finite(e) for e in series]
+            n = min((len(e) for e in stretches), default=0)
+            if n < MIN_SPECTRUM_SAMPLES:
+                continue
+            fs = 1.0 / float(np.median(np.concatenate([np.diff(t) for t in times])))
+            segment = min(n, MAX_SEGMENT)
+            spectra = [welch(e, fs=fs, nperseg=segment, detrend="constant") for e in stretches]
+            freq, density = spectra[0][0], np.mean([d for _, d in spectra], axis=0)
+            ax_f.semilogy(freq[1:], density[1:], color=color, label=label)
+            nea = sheet_row.get(f"nea_{axis}_arcsec")
+            if nea is not None:  # white noise of deviation NEA: one-sided density 2 NEA^2 / fs
+                ax_f.axhline(2.0 * nea**2 / fs, color=color, linestyle=":", linewidth=1.0)
+        ax_t.set_xlabel("time since the run's first scored frame (s)")
+        ax_t.set_ylabel("signed error (arcsec)")
+        ax_t.grid(True, alpha=0.3)
+        ax_t.legend(fontsize=8)
+        ax_f.set_xlabel("frequency (Hz)")
+        ax_f.set_ylabel("PSD (arcsec^2/Hz)")
+        ax_f.grid(True, alpha=0.3)
+    name = case_name(row) + (f", {row['sweep_key']} = {_fmt(row['sweep_value'])}" if row["sweep_key"] else "")
+    title = f"{name}, {row['pipeline']}: error per axis and its spectrum ({len(case.runs)} runs)"
+    axes[0][0].set_title(title, fontsize=9, loc="left")
+    path = folder / f"{_slug(_case_slug(row), row['pipeline'], 'spectrum')}.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return title, path
 
 
 def _plot_distortion(run_files: list[Path], folder: Path, plt) -> list[tuple[str, Path]]:
@@ -411,29 +603,84 @@ def _save(fig, ax, title: str, path: Path) -> Path:
     return path
 
 
-def write_report(bench, run_files: list[Path], out: Path) -> Path:
-    """Tables (``summary.md``, ``summary.csv``), plots (``plots/*.png``) and ``report.md`` linking them."""
+def _case_tables(case: Case) -> tuple[dict, list[dict]]:
+    """A case's summary row and its datasheet rows (their maximum rate still empty)."""
+    row = summary_row(case)
+    return row, datasheet.case_rows(case, row)
+
+
+_FORKED: tuple = ()  # (function, items) that forked workers inherit (set just before the pool starts them)
+
+
+def _forked_call(index: int):
+    function, items = _FORKED
+    return function(items[index])
+
+
+def forked_map(function, items: list, jobs: int | None = None) -> list:
+    """``[function(item) for item in items]`` on ``jobs`` forked processes (default: the CPU count; one process
+    where the platform cannot fork).  Forked, not spawned (``starenv.parallel``): the workers inherit ``function``
+    and ``items`` (loaded cases) instead of receiving them pickled; only the results travel."""
+    global _FORKED
+    jobs = min((os.cpu_count() or 1) if jobs is None else jobs, len(items))
+    if jobs <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        return [function(item) for item in items]
+    _FORKED = (function, items)
+    try:
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+            return list(pool.map(_forked_call, range(len(items))))
+    finally:
+        _FORKED = ()
+
+
+def tabulate(run_files: list[Path], jobs: int | None = None) -> tuple[list[Case], list[dict], list[dict]]:
+    """The cases of ``run_files``, their summary rows (:func:`summary_row`) and datasheet rows
+    (``starenv.bench.datasheet``): every figure of the report, before any table or plot is written.
+
+    ``jobs`` processes share the cases (:func:`forked_map`; each case's figures are its own, so the result does not
+    depend on ``jobs``): the bootstraps over runs are the report's costliest computation."""
+    cases = load_cases(run_files)
+    tables = forked_map(_case_tables, cases, jobs)
+    rows = [row for row, _ in tables]
+    return cases, rows, datasheet.with_rate_limits([s for _, sheet in tables for s in sheet], rows)
+
+
+def write_report(bench, run_files: list[Path], out: Path, jobs: int | None = None) -> Path:
+    """Tables (``summary.md``, ``summary.csv``, ``datasheet.csv``), plots (``plots/*.png``) and ``report.md``
+    linking them (``jobs``: processes for the figures, :func:`tabulate`)."""
     out = Path(out)
-    rows = aggregate(run_files)
+    cases, rows, sheet = tabulate(run_files, jobs)
     tables = markdown_tables(rows)
+    opening = datasheet.markdown(sheet, rows)
+    split = datasheet.split_markdown(sheet, rows)
     top = headline(rows)
     rates = working_rates(rows)
-    (out / "summary.md").write_text(f"# {bench.name}: summary\n\n{top}\n{rates}\n{tables}", encoding="utf-8")
+    (out / "summary.md").write_text(f"# {bench.name}: summary\n\n{opening}\n{top}\n{rates}\n{split}\n{tables}",
+                                    encoding="utf-8")
     write_csv(rows, out / "summary.csv")
-    plots = plot(rows, run_files, out / "plots")
+    write_csv(sheet, out / "datasheet.csv", datasheet.COLUMNS)
+    plots = plot(rows, run_files, out / "plots", cases, sheet, jobs)
     lines = [f"# Benchmark report: {bench.name}", ""]
     if bench.description:
         lines += [bench.description, ""]
-    lines += [top, rates] if rates else [top]
+    lines += [opening, top, rates] if rates else [opening, top]
+    seeds = sorted({len(c.runs) for c in cases})
     lines += [
-        f"Bench file: `{bench.source}`.  {len(run_files)} runs, {sum(r['steps'] for r in rows)} scored steps.  "
+        f"Bench file: `{bench.source}`.  {len(run_files)} runs, {sum(r['steps'] for r in rows)} scored steps, "
+        f"{'-'.join(map(str, (seeds[0], seeds[-1]) if len(seeds) > 1 else seeds))} run(s) per case "
+        "(`starenv bench --seeds N` runs N per case).  "
         "Per-step scores: [`runs/`](runs/) (one JSON-lines file per run, its identity in the first line).  "
-        "Tables: [summary.md](summary.md), [summary.csv](summary.csv) (every statistic of every metric).",
+        "Tables: [summary.md](summary.md), [summary.csv](summary.csv) (every statistic of every metric, with "
+        "the 95 % intervals in `*_ci_low` / `*_ci_high`), [datasheet.csv](datasheet.csv) (the datasheet of "
+        "every case).",
         "",
         "Each table's legend defines its columns (every metric, with its unit: `python -m starenv.metrics`).  "
-        "Attitude errors are over available steps.  Latencies are wall-clock on the machine that ran the step (the "
-        "only values that differ between repeated runs).",
+        "Attitude errors are over available steps.  `v [low, high]`: the 95 % interval over runs (exact binomial "
+        "over the pooled steps for a share, percentile bootstrap over runs otherwise; none with one run).  `-`: "
+        "nothing measured (e.g. the distortion left by a pipeline without a corrector).  Latencies are wall-clock "
+        "on the machine that ran the step (the only values that differ between repeated runs).",
         "",
+        split,
     ]
     recorded = sorted((out / "recordings").glob("*.mcap")) if bench.recorder else []
     if recorded:

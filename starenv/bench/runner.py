@@ -23,9 +23,11 @@ import hashlib
 import json
 import operator
 import os
+import socket
 import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -154,6 +156,63 @@ def check_writable(out: Path) -> None:
         raise BenchError(f"--out {out}: expected a folder that can be created and written ({exc})") from exc
 
 
+LOCK = ".bench.lock"  # in OUT while a bench writes there: "HOST PID"
+
+
+def _lock_holder(path: Path) -> str | None:
+    """Who holds the lock at ``path`` ("host H, process P"), or None when it is stale: its process on this host is
+    gone, or the lock is unreadable (a bench killed between creating it and writing it)."""
+    try:
+        host, pid = path.read_text(encoding="utf-8").split()
+        pid = int(pid)
+    except (OSError, ValueError):
+        return None
+    if host == socket.gethostname():
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return None
+        except PermissionError:  # alive, another user's
+            pass
+    return f"host {host}, process {pid}"
+
+
+@contextmanager
+def bench_lock(out: Path) -> Iterator[None]:
+    """Hold ``out``'s bench lock (``OUT/.bench.lock``, created exclusively, removed when the bench ends): a second
+    bench on the same folder is refused with a BenchError naming the holder; a lock left by a killed bench on this
+    host is taken over."""
+    path = Path(out) / LOCK
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
+            break
+        except FileExistsError:
+            holder = _lock_holder(path)
+            if holder is not None:
+                raise BenchError(f"--out {out}: another bench is writing there ({holder}, {path}); wait for it or "
+                                 f"choose another --out (delete the lock only if no bench runs)") from None
+            path.unlink(missing_ok=True)  # stale: taken over
+    else:
+        raise BenchError(f"--out {out}: {path} keeps coming back; another bench is starting there")
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(f"{socket.gethostname()} {os.getpid()}\n")
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def _finished_recording(path: Path) -> bool:
+    """Whether ``path`` is a finished MCAP recording (a 0-byte or cut file a killed run left is not)."""
+    from starenv.record.mcap import is_finished
+
+    try:
+        return is_finished(path)
+    except ValueError:
+        return False
+
+
 def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str | None = None,
               use_ray: bool = False, ray_options: dict | None = None, progress: bool = True,
               log=print) -> list[Path]:
@@ -161,12 +220,17 @@ def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str 
 
     ``jobs``: local worker processes (default: the CPU count; 1 runs in this process).  ``use_ray``: run on the Ray
     cluster at ``ray_address`` (None: a local instance, or the one this process already started; ``ray_options``
-    go to ``ray.init``, e.g. ``num_cpus``).
+    go to ``ray.init``, e.g. ``num_cpus``).  One bench at a time writes to ``out`` (:func:`bench_lock`).
     """
-    from tqdm import tqdm
-
     out = Path(out)
     check_writable(out)
+    with bench_lock(out):
+        return _run_bench(bench, out, jobs, ray_address, use_ray, ray_options, progress, log)
+
+
+def _run_bench(bench, out: Path, jobs, ray_address, use_ray, ray_options, progress, log) -> list[Path]:
+    from tqdm import tqdm
+
     key = operator.itemgetter(0)
     jobs = (os.cpu_count() or 1) if jobs is None else jobs
     if use_ray:
@@ -179,7 +243,7 @@ def run_bench(bench, out: str | Path, jobs: int | None = None, ray_address: str 
         if why is not None:
             log(f"  recomputing {run.run_id}: {why}")
         complete = why is None and run_file(out, run).is_file()
-        if complete and bench.recorder is not None and run.record and not recording_file(out, run).is_file():
+        if complete and bench.recorder is not None and run.record and not _finished_recording(recording_file(out, run)):
             complete = False
         (reused if complete else todo).append(run)
     if reused:

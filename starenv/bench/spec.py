@@ -4,9 +4,11 @@ A bench file is TOML (bundled ones are package data in ``scenarios/benches/``, n
 
     name = "my-bench"                 # optional, defaults to the file's stem
     description = "..."               # optional
-    seeds = [0, 1]                    # default seeds of every group (default: each scenario's own seed)
+    seeds = [0, 1]                    # default seeds of every group (default: each scenario's own seed); a count
+                                      # N >= 1 is the seeds 0 .. N-1 (seeds = 8: [0, 1, ..., 7])
     steps = 30                        # default scored steps per run (default: the whole scenario)
-    recordings = false                # true: one MCAP per run (starenv.record.mcap:McapRecorder)
+    recordings = false                # true: one MCAP per run (starenv.record.mcap:McapRecorder); a list of seeds:
+                                      # only the runs of those seeds (recordings = [0])
 
     [pipelines.svd]                   # a named pipeline: the scenario's own [pipeline] with these roles replaced
     solver = "starenv.agents.solve:SvdSolver"          # role = "module:Class" or "none"
@@ -20,12 +22,16 @@ A bench file is TOML (bundled ones are package data in ``scenarios/benches/``, n
     sweep = { key = "motion.rate_dps", axis = [1, 1, 1], start = 0, stop = 30, step = 5 }
     # or  sweep = { key = "motion.rate_dps", axis = [1, 0, 0], values = [0, 5, 10] }
     # or  sweep = { key = "drops.probability", values = [0.0, 0.1, 0.3] }   (no axis: each value used as is)
-    seeds = [3]                       # optional, replaces the default seeds
+    seeds = [3]                       # optional, replaces the default seeds (a list, or a count N: 0 .. N-1)
     steps = 50                        # optional, replaces the default steps
     recordings = false                # optional: do not record this group's runs (default: as the bench says)
 
 With ``axis``, a swept value is a magnitude along the unit vector of ``axis`` (a rate of 10 deg/s about [1, 1, 1]
 overrides ``motion.rate_dps`` with ``10 / sqrt(3) * [1, 1, 1]``); ranges include ``stop``.
+
+``seeds`` scales the Monte Carlo: every figure of the report carries a 95 % interval over a case's runs (its seeds;
+``starenv.datasheet``), so more seeds give narrower intervals.  ``parse_bench(..., seeds=N)`` (``starenv bench
+--seeds N``) replaces every ``seeds`` of the file, the top level's and each group's, with 0 .. N-1.
 
 Built-in pipelines (``PRESETS``): ``scenario`` (the scenario's own ``[pipeline]``), ``lost_in_space`` (the same
 with the lost-in-space identifier, no tracking) and ``tracking`` (the same with the tracking identifier).
@@ -158,6 +164,7 @@ class Bench:
     source: str
     runs: list[RunSpec]
     recorder: str | None = None
+    recorded_seeds: tuple[int, ...] | None = None  # the seeds whose runs are recorded (None: every seed)
 
 
 def resolve_bench(bench: str | Path) -> Path:
@@ -209,10 +216,39 @@ def _named_pipeline(name: str, tbl: Table) -> NamedPipeline:
     return NamedPipeline(spec.agents, spec.options, spec.catalog_mag_limit, name=name)
 
 
-def _recorder(value: Any, source: str) -> str | None:
-    if not isinstance(value, bool):
-        raise BenchError(f"{source}: recordings: expected true or false, got {value!r}")
-    return MCAP_RECORDER if value else None
+SEEDS_EXPECTED = "a non-empty list of integers >= 0, or a count N >= 1 (the seeds 0 .. N-1)"
+
+
+def seed_count(n: Any, what: str) -> list[int]:
+    """The seeds 0 .. n-1 of a count ``n`` (an integer >= 1); BenchError naming ``what`` otherwise."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise BenchError(f"{what}: expected a count N >= 1 (the seeds 0 .. N-1), got {n!r}")
+    return list(range(n))
+
+
+def _seeds(tbl: Table, default: Any) -> list[int] | None:
+    """A table's ``seeds``: a list of integers >= 0 or a count (``default`` when absent)."""
+    v = tbl.get("seeds", default)
+    if v is default:
+        return v
+    if isinstance(v, int) and not isinstance(v, bool):
+        if v < 1:
+            tbl.fail("seeds", SEEDS_EXPECTED, v)
+        return list(range(v))
+    if not (isinstance(v, list) and v and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in v)):
+        tbl.fail("seeds", SEEDS_EXPECTED, v)
+    return v
+
+
+def _recorder(value: Any, source: str) -> tuple[str | None, tuple[int, ...] | None]:
+    """The recorder and the seeds it records (None: all) of the top level's ``recordings``."""
+    if isinstance(value, bool):
+        return (MCAP_RECORDER if value else None), None
+    if isinstance(value, list) and value and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0
+                                                 for x in value):
+        return MCAP_RECORDER, tuple(value)
+    raise BenchError(f"{source}: recordings: expected true, false or a non-empty list of seeds (only their runs "
+                     f"recorded), got {value!r}")
 
 
 def _scenario_path(name: Any, bench_dir: Path, where: str, source: str) -> Path:
@@ -228,14 +264,16 @@ def _scenario_path(name: Any, bench_dir: Path, where: str, source: str) -> Path:
 
 
 def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = None, check: bool = True,
-                trust: tuple[str, ...] = ()) -> Bench:
+                trust: tuple[str, ...] = (), seeds: int | None = None) -> Bench:
     """Parse and validate bench TOML ``text``; with ``check`` every scenario x sweep value is loaded with its
     overrides and every pipeline is built once per scenario (an agent that does not load fails here).  ``trust``:
-    module prefixes outside ``starenv`` whose agent classes the file may name (checked whatever ``check`` says)."""
+    module prefixes outside ``starenv`` whose agent classes the file may name (checked whatever ``check`` says).
+    ``seeds``: a count N >= 1 whose seeds 0 .. N-1 replace every ``seeds`` of the file (``--seeds``)."""
     from starenv.agents.pipeline import check_trust
 
     bench_dir = Path(".") if bench_dir is None else bench_dir
     trust = check_trust(trust)
+    forced_seeds = None if seeds is None else seed_count(seeds, "--seeds")
     data = parse_toml(text, source, BenchError)
     top = Table(data, "", source, BenchError)
     name = top.get("name", Path(source).stem)
@@ -243,9 +281,9 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
     for k, v in (("name", name), ("description", description)):
         if not isinstance(v, str):
             top.fail(k, "a string", v)
-    default_seeds = top.integer_list("seeds", None, 0)
+    default_seeds = _seeds(top, None)
     default_steps = top.number("steps", None, low=1, integer=True)
-    recorder = _recorder(top.get("recordings", False), source)
+    recorder, recorded_seeds = _recorder(top.get("recordings", False), source)
     pipelines = {}
     ptbl = top.get("pipelines", {})
     pt = Table(ptbl, "pipelines", source, BenchError)
@@ -282,7 +320,9 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
             g.fail("set", "a table of dotted scenario keys, e.g. { \"motion.rate_dps\" = [0, 0, 5] }", fixed)
         sweep_tbl = g.get("sweep")
         sweep = None if sweep_tbl is None else _sweep(Table(sweep_tbl, g.where("sweep"), source, BenchError))
-        seeds = g.integer_list("seeds", default_seeds, 0)
+        seeds = _seeds(g, default_seeds)  # read and checked even where --seeds replaces it
+        if forced_seeds is not None:
+            seeds = forced_seeds
         steps = g.number("steps", default_steps, low=1, integer=True)
         record = g.get("recordings", True)
         if not isinstance(record, bool):
@@ -312,7 +352,8 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
                     runs.append(RunSpec(
                         sc_name, str(path), text_sc, overrides, sweep.key if sweep else None, value,
                         sweep.axis if sweep else None, pipelines[n], int(seed),
-                        int(steps if steps is not None else scenario.n_steps - 1), record, trust,
+                        int(steps if steps is not None else scenario.n_steps - 1),
+                        record and (recorded_seeds is None or int(seed) in recorded_seeds), trust,
                     ))
     ids = {}
     for r in runs:
@@ -320,10 +361,10 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
             raise BenchError(f"{source}: runs: the same run is listed twice ({r.scenario}, pipeline {r.pipeline.name},"
                              f" seed {r.seed}, overrides {r.overrides})")
         ids[r.run_id] = r
-    return Bench(name, description, source, runs, recorder)
+    return Bench(name, description, source, runs, recorder, recorded_seeds)
 
 
-def load_bench(bench: str | Path, check: bool = True, trust: tuple[str, ...] = ()) -> Bench:
+def load_bench(bench: str | Path, check: bool = True, trust: tuple[str, ...] = (), seeds: int | None = None) -> Bench:
     """Load a bench file by path or bundled name (see :func:`parse_bench`)."""
     path = resolve_bench(bench)
-    return parse_bench(path.read_text(encoding="utf-8"), str(path), path.parent, check, trust)
+    return parse_bench(path.read_text(encoding="utf-8"), str(path), path.parent, check, trust, seeds)

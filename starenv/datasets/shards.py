@@ -6,15 +6,20 @@ version, format version, kind, shard, first index, count).  ``main_star`` shards
 shards concatenate the per-sample star lists (``xy``, ``catalog_id``, ``magnitude``) and give each sample's
 ``count`` (offsets are its cumulative sum).  The .npz is written without compression and with fixed zip timestamps,
 so the same spec gives bit-identical shard bytes on any executor.  A shard is written under a temporary name and
-moved into place (``os.replace``): a killed build leaves complete shards or none, and a new build skips shards
-whose meta carries the spec's digest.
+moved into place (``os.replace``): a killed build leaves complete shards or none.  ``OUT/shards.json`` records each
+finished shard's SHA-256 (written by the process that drives the build, after the shard is in place): a new build
+reuses only shards whose bytes have the recorded hash (any other file, or one killed before its hash was recorded,
+is built again: the same bytes), and :class:`~starenv.agents.identify.network_data.ShardDataset` refuses a shard
+whose bytes do not.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
 import io
 import json
+import math
 import operator
 import os
 import sys
@@ -29,6 +34,8 @@ from starenv.files import atomic_file
 from starenv.parallel import local_executor, ray_executor
 
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
+INDEX = "shards.json"  # {"spec_digest": ..., "sha256": {shard file name: SHA-256 of its bytes}}
+MAX_INDEX_BYTES = 1 << 26  # ~90 bytes per shard: far more shards than any spec asks for
 
 
 def _version() -> str:
@@ -43,13 +50,68 @@ def shard_path(out: str | Path, shard: int) -> Path:
     return Path(out) / f"shard-{shard:05d}.npz"
 
 
-def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """An uncompressed .npz (readable by ``np.load``) with fixed timestamps, written atomically."""
-    with atomic_file(path) as f, zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED) as zf:
+def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
+    """An uncompressed .npz (readable by ``np.load``) with fixed timestamps, written atomically; its SHA-256."""
+    data = io.BytesIO()
+    with zipfile.ZipFile(data, "w", compression=zipfile.ZIP_STORED) as zf:
         for name in sorted(arrays):
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.ascontiguousarray(arrays[name]), allow_pickle=False)
             zf.writestr(zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_TIME), buf.getvalue())
+    with atomic_file(path) as f:
+        f.write(data.getvalue())
+    return hashlib.sha256(data.getvalue()).hexdigest()
+
+
+def read_arrays(data: bytes, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The arrays ``names`` of the .npz bytes ``data`` (as :func:`write_npz` writes them), each member's header
+    checked before anything is allocated: stored uncompressed, a plain numeric dtype, and no more bytes than the
+    member holds.  Anything else is a ValueError."""
+    out = {}
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            for name in names:
+                info = zf.getinfo(f"{name}.npy")
+                if info.compress_type != zipfile.ZIP_STORED or info.file_size > len(data):
+                    raise ValueError(f"{name}: not stored as write_npz stores it")
+                with zf.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                        np.lib.format.read_array_header_2_0
+                    shape, _, dtype = read_header(f)
+                    if dtype.kind not in "biuf" or math.prod(shape) * dtype.itemsize > info.file_size:
+                        raise ValueError(f"{name}: a header of {shape} {dtype} in {info.file_size} bytes")
+                    f.seek(0)
+                    out[name] = np.lib.format.read_array(f, allow_pickle=False)
+    except (KeyError, OSError, EOFError, zipfile.BadZipFile, RuntimeError, NotImplementedError) as exc:
+        raise ValueError(f"not a shard as write_npz writes it ({type(exc).__name__}: {exc})") from exc
+    return out
+
+
+def read_index(out: str | Path, spec_digest: str) -> dict[str, str]:
+    """The recorded SHA-256 of each finished shard of ``out`` (file name -> hex); empty when there is no index.  An
+    index that cannot be read or is of another spec is a ValueError naming it."""
+    path = Path(out) / INDEX
+    if not path.is_file():
+        return {}
+    try:
+        if path.stat().st_size > MAX_INDEX_BYTES:
+            raise ValueError(f"larger than {MAX_INDEX_BYTES} bytes")
+        index = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError) as exc:
+        raise DatasetError(f"{path}: not a readable shard index ({exc})") from exc
+    hashes = index.get("sha256") if isinstance(index, dict) else None
+    if (not isinstance(hashes, dict) or index.get("spec_digest") != spec_digest
+            or not all(isinstance(k, str) and isinstance(v, str) and len(v) == 64 for k, v in hashes.items())):
+        raise DatasetError(f"{path}: not the shard index of spec {spec_digest[:12]}")
+    return hashes
+
+
+def record_shards(out: str | Path, spec_digest: str, hashes: dict[str, str]) -> None:
+    """Write ``out``'s shard index (atomically): ``hashes`` maps shard file names to their SHA-256."""
+    text = json.dumps({"spec_digest": spec_digest, "sha256": dict(sorted(hashes.items()))}, indent=1)
+    with atomic_file(Path(out) / INDEX, "w", encoding="utf-8") as f:
+        f.write(text + "\n")
 
 
 def shard_arrays(spec: DatasetSpec, shard: int) -> dict[str, np.ndarray]:
@@ -67,24 +129,32 @@ def shard_arrays(spec: DatasetSpec, shard: int) -> dict[str, np.ndarray]:
     return arrays
 
 
-def build_shard(spec: DatasetSpec, out: str, shard: int) -> int:
-    """Generate shard ``shard`` and write it into ``out``; returns its sample count."""
-    write_npz(shard_path(out, shard), shard_arrays(spec, shard))
-    return len(spec.shard_range(shard))
+def build_shard(spec: DatasetSpec, out: str, shard: int) -> tuple[int, str]:
+    """Generate shard ``shard`` and write it into ``out``; returns its sample count and the SHA-256 of its bytes."""
+    sha = write_npz(shard_path(out, shard), shard_arrays(spec, shard))
+    return len(spec.shard_range(shard)), sha
 
 
 def read_meta(path: Path) -> dict | None:
     """A shard's meta, or None when the file is missing or unreadable."""
     try:
-        with np.load(path) as z:
-            return json.loads(bytes(z["meta"]).decode())
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, json.JSONDecodeError):
+        return json.loads(read_arrays(Path(path).read_bytes(), ("meta",))["meta"].tobytes().decode())
+    except (OSError, ValueError, RecursionError):
         return None
 
 
-def is_complete(spec: DatasetSpec, out: str | Path, shard: int) -> bool:
-    meta = read_meta(shard_path(out, shard))
-    return meta is not None and meta.get("spec_digest") == spec.digest and meta.get("count") == len(
+def is_complete(spec: DatasetSpec, out: str | Path, shard: int, index: dict[str, str]) -> bool:
+    """Whether shard ``shard`` of ``out`` is finished: its bytes have the SHA-256 ``index`` records for it, and its
+    meta names the spec and the shard's sample count."""
+    path = shard_path(out, shard)
+    recorded = index.get(path.name)
+    try:
+        if recorded is None or hashlib.sha256(path.read_bytes()).hexdigest() != recorded:
+            return False
+    except OSError:
+        return False
+    meta = read_meta(path)
+    return isinstance(meta, dict) and meta.get("spec_digest") == spec.digest and meta.get("count") == len(
         spec.shard_range(shard))
 
 
@@ -106,8 +176,12 @@ def build_dataset(spec: DatasetSpec | str | Path, out: str | Path, jobs: int | N
         raise DatasetError(f"--out {out}: expected a folder that can be created and written ({exc})") from exc
     manifest = out / "dataset.json"
     if manifest.is_file():
-        old = json.loads(manifest.read_text(encoding="utf-8"))
-        if old.get("spec_digest") != spec.digest:
+        try:
+            old = json.loads(manifest.read_text(encoding="utf-8"))
+        except (OSError, ValueError, RecursionError) as exc:
+            raise DatasetError(f"{manifest}: not readable ({exc}); choose an empty folder") from exc
+        if not isinstance(old, dict) or old.get("spec_digest") != spec.digest:
+            old = old if isinstance(old, dict) else {}
             raise DatasetError(f"--out {out}: holds another dataset ({old.get('name')!r}, spec digest "
                                f"{str(old.get('spec_digest'))[:12]}); choose an empty folder")
     else:
@@ -116,7 +190,13 @@ def build_dataset(spec: DatasetSpec | str | Path, out: str | Path, jobs: int | N
                            "n_shards": spec.n_shards, "spec": spec.to_dict()}, sort_keys=True, indent=1, default=list)
         with atomic_file(manifest, "w", encoding="utf-8") as f:
             f.write(text + "\n")
-    todo = [s for s in range(spec.n_shards) if not is_complete(spec, out, s)]
+    try:
+        index = read_index(out, spec.digest)
+    except DatasetError as exc:
+        log(f"rebuilding every shard: {exc}")
+        index = {}
+    todo = [s for s in range(spec.n_shards) if not is_complete(spec, out, s, index)]
+    index = {shard_path(out, s).name: index[shard_path(out, s).name] for s in range(spec.n_shards) if s not in todo}
     reused = spec.n_shards - len(todo)
     if reused:
         log(f"reusing {reused} complete shard(s) in {out}")
@@ -130,7 +210,9 @@ def build_dataset(spec: DatasetSpec | str | Path, out: str | Path, jobs: int | N
     bar = tqdm(total=spec.samples, initial=done, unit="sample", disable=not progress, file=sys.stderr,
                desc=spec.name)
     try:
-        for _, count in executor([(spec, str(out), s) for s in todo]):
+        for shard, (count, sha) in executor([(spec, str(out), s) for s in todo]):
+            index[shard_path(out, shard).name] = sha
+            record_shards(out, spec.digest, index)  # after the shard is in place: a kill before leaves it unrecorded
             bar.update(count)
     finally:
         bar.close()

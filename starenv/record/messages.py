@@ -1,15 +1,16 @@
 """starenv's own protobuf messages in recordings, built at run time with ``descriptor_pb2`` (no protoc needed).
 
 ``starenv.StepScores``: every score of one step.  Typed fields for the metrics of ``info["scores"]``, derived from
-``starenv.metrics.METRICS``: the ``step`` scope's in ``StepScores``, the ``attitude`` scope's in ``AttitudeError``,
-the ``head_attitude`` scope's in ``HeadAttitudeError`` (one per head) and the ``head`` scope's in ``HeadScores`` (one
-per head), each numbered in declaration order with the numbers the message's other fields leave free (so a metric
-added after the last of its scope leaves older files readable); and the whole flat record (``StepLog.record``) as a
-``map<string, double>`` plus the list of its keys that had no value this step; per-head scores no metric declares go
-to that head's ``extra`` map.  ``starenv.GyroSamples``: the gyro samples delivered with one frame (s, rad/s, body
-frame).  ``starenv.FilterState``: a fusion filter's state at one frame (``starenv.record.step.FilterState``:
-attitude ``[x, y, z, w]`` ICRS -> body, bias estimate and true bias in deg/h, 1-sigma in arcsec and deg/h, body axes).
-The file is proto2 so that "no value" (Python ``None``) stays distinguishable from 0.
+``starenv.metrics.METRICS``: the ``step`` scope's in ``StepScores``, the ``attitude`` scope's in ``AttitudeError``, the
+``body_attitude`` scope's in ``BodyAttitudeError`` (its ``body``), the ``head_attitude`` scope's in
+``HeadAttitudeError`` (one per head) and the ``head`` scope's in ``HeadScores`` (one per head), each numbered in
+declaration order with the numbers the message's other fields leave free (so a metric added after the last of its scope
+leaves older files readable); and the whole flat record (``StepLog.record``) as a ``map<string, double>`` plus the list
+of its keys that had no value this step; per-head scores no metric declares go to that head's ``extra`` map.
+``starenv.GyroSamples``: the gyro samples delivered with one frame (s, rad/s, body frame).  ``starenv.FilterState``: a
+fusion filter's state at one frame (``starenv.record.step.FilterState``: attitude ``[x, y, z, w]`` ICRS -> body, bias
+estimate and true bias in deg/h, 1-sigma in arcsec and deg/h, body axes).  The file is proto2 so that "no value" (Python
+``None``) stays distinguishable from 0.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def _map(msg, name: str, number: int, entry: str) -> None:
 
 
 Layout = tuple[tuple[str, tuple[tuple[str, type], ...]], ...]
-TYPED_SCOPES = ("step", "attitude", "head_attitude", "head")
+TYPED_SCOPES = ("step", "attitude", "body_attitude", "head_attitude", "head")
 
 
 def layout() -> Layout:
@@ -74,8 +75,10 @@ def _file(typed: Layout) -> descriptor_pb2.FileDescriptorProto:
     scores = dict(typed)
     fd = descriptor_pb2.FileDescriptorProto(name="starenv/recording.proto", package=PACKAGE, syntax="proto2")
     _message(fd, "HeadAttitudeError", {}, scores["head_attitude"])
+    _message(fd, "BodyAttitudeError", {}, scores["body_attitude"])
     _message(fd, "AttitudeError", {
         "heads": (2, lambda m, k, n: _field(m, k, n, MESSAGE, REPEATED, "HeadAttitudeError")),
+        "body": (3, lambda m, k, n: _field(m, k, n, MESSAGE, OPTIONAL, "BodyAttitudeError")),
     }, scores["attitude"])
     _message(fd, "HeadScores", {"extra": (100, lambda m, k, n: _map(m, k, n, "ExtraEntry"))}, scores["head"])
     _message(fd, "StepScores", {
@@ -111,7 +114,8 @@ def _classes(typed: Layout) -> dict[str, type]:
     """Built once per process and schema."""
     pool = descriptor_pool.DescriptorPool()
     pool.Add(_file(typed))
-    names = ("HeadAttitudeError", "AttitudeError", "HeadScores", "StepScores", "GyroSamples", "FilterState")
+    names = ("HeadAttitudeError", "BodyAttitudeError", "AttitudeError", "HeadScores", "StepScores", "GyroSamples",
+             "FilterState")
     return {n: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{PACKAGE}.{n}")) for n in names}
 
 
@@ -130,6 +134,8 @@ def encode_scores(frame: int, time_s: float, source: str, scores: dict, record: 
     att = scores.get("attitude")
     if att:  # empty (or None in older callers) when the step had no estimate
         _set(msg.attitude, typed["attitude"], att)
+        if "body" in att:  # absent in scores made before the body's errors were scored
+            _set(msg.attitude.body, typed["body_attitude"], att["body"])
         for h in att["heads"]:
             _set(msg.attitude.heads.add(), typed["head_attitude"], h)
     head_keys = dict(typed["head"])
@@ -154,6 +160,8 @@ def decode_scores(msg) -> tuple[dict, dict]:
     if msg.HasField("attitude"):
         att = {**{k: getattr(msg.attitude, k) for k, _ in typed["attitude"]},
                "heads": [{k: getattr(h, k) for k, _ in typed["head_attitude"]} for h in msg.attitude.heads]}
+        if msg.attitude.HasField("body"):
+            att["body"] = {k: getattr(msg.attitude.body, k) for k, _ in typed["body_attitude"]}
     heads = []
     for h in msg.heads:
         d = {k: getattr(h, k) if h.HasField(k) else None for k, _ in typed["head"]}

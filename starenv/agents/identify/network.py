@@ -19,6 +19,8 @@ frame as the detector saw it, which the pipeline passes); without it nothing is 
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import math
 import time
@@ -30,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import StarMeasurements
 from starenv.agents.identify.geometry import body_vectors, with_ids
-from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
+from starenv.agents.identify.network_model import MAX_PARAMETERS, MainStarConfig, MainStarNet, parameter_count
 from starenv.agents.identify.verify import verify
 from starenv.sim.conventions import pointing, unit_to_radec
 from starenv.sim.optics import Camera
@@ -41,12 +43,91 @@ DEFAULT_WEIGHTS = WEIGHTS_DIR / "paper002_orion"
 CLASS_MAG_LIMIT = 8.0  # the navigation stars' directions come from Hipparcos down to this Hp (classes are brighter)
 
 
+MAX_MANIFEST_BYTES = 1 << 24  # a manifest holds a config, a class list and per-epoch metrics: far less
+MAX_WEIGHTS_BYTES = 4 * MAX_PARAMETERS + (1 << 24)  # float32 parameters, BatchNorm buffers and the zip's own records
+IDENTITY_KEYS = ("config", "classes_hip", "camera", "weights_sha256")  # what the identity hash covers
+
+
+def manifest_hashes(manifest: dict, weights: bytes) -> dict:
+    """The manifest's hashes of a run: ``weights_sha256`` (SHA-256 of weights.pt's bytes) and ``identity_sha256``
+    (SHA-256 of the compact sorted JSON of :data:`IDENTITY_KEYS`: config, class order, camera and weights).  They
+    catch damaged or inconsistently edited files; whoever can write the folder can recompute them."""
+    out = {"weights_sha256": hashlib.sha256(weights).hexdigest()}
+    identity = {k: (out if k in out else manifest)[k] for k in IDENTITY_KEYS}
+    text = json.dumps(identity, sort_keys=True, separators=(",", ":"))
+    out["identity_sha256"] = hashlib.sha256(text.encode()).hexdigest()
+    return out
+
+
+def _checked_manifest(path: Path) -> dict:
+    """The manifest at ``path``, its form checked (config, classes, camera, hashes), else ValueError naming it."""
+    try:
+        if path.stat().st_size > MAX_MANIFEST_BYTES:
+            raise ValueError(f"{path}: larger than {MAX_MANIFEST_BYTES} bytes")
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ValueError(f"{path}: not a readable manifest ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(manifest, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    for key in ("config", "classes_hip", "weights_sha256", "identity_sha256"):
+        if key not in manifest:
+            raise ValueError(f"{path}: {key}: missing (a manifest of `starenv train`)")
+    config = manifest["config"]
+    if not isinstance(config, dict):
+        raise ValueError(f"{path}: config: expected a table of MainStarConfig fields")
+    try:
+        config = MainStarConfig.from_dict(config)  # bounded before any tensor exists
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: config: {exc}") from exc
+    classes = manifest["classes_hip"]
+    if not (isinstance(classes, list) and all(type(h) is int and 0 < h < 2**31 for h in classes)):
+        raise ValueError(f"{path}: classes_hip: expected a list of HIP numbers (positive integers)")
+    if len(set(classes)) != len(classes) or len(classes) != config.n_classes:
+        raise ValueError(f"{path}: classes_hip: expected {config.n_classes} (config.n_classes) distinct HIP numbers, "
+                         f"got {len(classes)} with {len(classes) - len(set(classes))} repeated")
+    camera = manifest.get("camera")
+    if camera is not None:
+        fov = camera.get("fov_deg") if isinstance(camera, dict) else None
+        if not (isinstance(fov, list) and len(fov) == 2
+                and all(isinstance(a, int | float) and not isinstance(a, bool) and 0 < a < 180 for a in fov)):
+            raise ValueError(f"{path}: camera.fov_deg: expected two angles in (0, 180) deg, got {fov!r}")
+    return manifest
+
+
 def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> tuple[MainStarNet, dict]:
-    """The network of a trained run folder (``weights.pt`` + ``manifest.json``), in eval mode, and its manifest."""
+    """The network of a trained run folder (``weights.pt`` + ``manifest.json``), in eval mode, and its manifest.
+
+    The manifest is checked before anything is allocated: its config bounded (:class:`MainStarConfig`), its class
+    list distinct HIP numbers, one per output, its camera's field of view an angle, ``weights.pt``'s SHA-256 and the
+    identity hash (:func:`manifest_hashes`) equal to what it records.  Anything else is a ValueError naming the file.
+    """
     folder = Path(folder)
-    manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
-    net = MainStarNet(MainStarConfig.from_dict(manifest["config"]))
-    net.load_state_dict(torch.load(folder / "weights.pt", weights_only=True, map_location=device))
+    manifest = _checked_manifest(folder / "manifest.json")
+    path = folder / "weights.pt"
+    try:
+        if path.stat().st_size > MAX_WEIGHTS_BYTES:
+            raise ValueError(f"{path}: larger than {MAX_WEIGHTS_BYTES} bytes, more than any bounded config needs")
+        weights = path.read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot be read ({exc})") from exc
+    hashes = manifest_hashes(manifest, weights)
+    if hashes["weights_sha256"] != manifest["weights_sha256"]:
+        raise ValueError(f"{path}: its SHA-256 is not the manifest's weights_sha256 (damaged or replaced)")
+    if hashes["identity_sha256"] != manifest["identity_sha256"]:
+        raise ValueError(f"{folder / 'manifest.json'}: its config, classes or camera are not what its identity_sha256 "
+                         f"records (edited or damaged)")
+    config = MainStarConfig.from_dict(manifest["config"])
+    if len(weights) < 4 * parameter_count(config):  # float32: the network is not built for weights that cannot fit
+        raise ValueError(f"{path}: {len(weights)} bytes, fewer than the {parameter_count(config)} float32 parameters "
+                         f"of its manifest's config")
+    net = MainStarNet(config)
+    try:
+        state = torch.load(io.BytesIO(weights), weights_only=True, map_location=device)
+        net.load_state_dict(state)
+    except Exception as exc:  # noqa: BLE001  (torch raises many types for a zip or state dict that does not fit)
+        raise ValueError(f"{path}: not the weights of its manifest's config ({type(exc).__name__})") from exc
+    if not all(torch.isfinite(t).all() for t in state.values() if t.is_floating_point()):
+        raise ValueError(f"{path}: holds non-finite values")
     return net.to(device).eval(), manifest
 
 

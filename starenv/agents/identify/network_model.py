@@ -22,11 +22,17 @@ Architecture (paper, Figs. 4-6 and Eqs. 6-11), every size a field of :class:`Mai
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import math
+from dataclasses import asdict, dataclass, fields
 
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+# Bounds checked before a network is built (a config read from a file must not allocate without limit):
+MAX_PARAMETERS = 2**27  # trainable parameters (512 MiB as float32; the paper's config has 1.5 M)
+MAX_INPUT_SIZE = 1024  # px: (1024 / 16)^2 = 4096 tokens, attention maps of 4096^2 per head (the paper: 256)
+MAX_FIELD = 2**16  # any single size (classes, channels, depth, heads, dims)
 
 
 @dataclass(frozen=True)
@@ -45,15 +51,24 @@ class MainStarConfig:
     scale_dn: float = 10.0
 
     def __post_init__(self):
-        if len(self.widths) != 6:
+        def size(name: str, value) -> None:
+            if type(value) is not int or not 1 <= value <= MAX_FIELD:
+                raise ValueError(f"{name}: expected an integer in [1, {MAX_FIELD}], got {value!r}")
+
+        if not isinstance(self.widths, tuple | list) or len(self.widths) != 6:
             raise ValueError(f"widths: expected 6 basic-block widths, got {self.widths!r}")
-        if self.input_size % 16:
-            raise ValueError(f"input_size: expected a multiple of 16 (four stride-2 stages), got {self.input_size}")
+        for k, w in enumerate(self.widths):
+            size(f"widths[{k}]", w)
         for name in ("n_classes", "input_size", "stem_width", "depth", "heads", "head_dim", "mlp_dim"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {getattr(self, name)!r}")
-        if not self.scale_dn > 0:
+            size(name, getattr(self, name))
+        if self.input_size % 16 or self.input_size > MAX_INPUT_SIZE:
+            raise ValueError(f"input_size: expected a multiple of 16 (four stride-2 stages) up to {MAX_INPUT_SIZE}, "
+                             f"got {self.input_size}")
+        if not (isinstance(self.scale_dn, int | float) and not isinstance(self.scale_dn, bool)
+                and math.isfinite(self.scale_dn) and self.scale_dn > 0):
             raise ValueError(f"scale_dn: expected a positive number of DN, got {self.scale_dn!r}")
+        if parameter_count(self) > MAX_PARAMETERS:
+            raise ValueError(f"config: {parameter_count(self)} parameters, more than {MAX_PARAMETERS}")
 
     @property
     def dim(self) -> int:
@@ -72,7 +87,13 @@ class MainStarConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> MainStarConfig:
-        return cls(**{**d, "widths": tuple(d["widths"])})
+        """A config from :meth:`to_dict`'s form; an unknown or missing field is a ValueError naming it."""
+        names = [f.name for f in fields(cls)]
+        unknown, missing = sorted(set(d) - set(names)), [n for n in names if n not in d]
+        if unknown or missing:
+            raise ValueError(f"expected the fields {', '.join(names)}; unknown {unknown}, missing {missing}")
+        widths = d["widths"]
+        return cls(**{**d, "widths": tuple(widths) if isinstance(widths, list) else widths})
 
 
 class BasicBlock(nn.Module):

@@ -9,12 +9,15 @@
   the same command gives bit-identical weights.  ``--rot90`` turns each image by a multiple of 90 deg about its
   centre, drawn from (seed, epoch, batch): a roll of the sensor, which leaves the boresight star's label unchanged
   (exact for a square sensor whose principal point is the image centre).
-* ``RUN/checkpoint.pt`` (model, optimiser, epoch, batch, metrics so far) is written after every epoch and every
-  ``--checkpoint-every`` batches, whole and then moved into place; ``--resume`` continues from it and replays the
-  remaining batches exactly.
+* ``RUN/checkpoint.pt`` (model, optimiser, epoch, batch, metrics so far, and the arguments that decide the result:
+  seed, batch, learning rate, epochs, rot90, device, validation set, initial weights) is written after every epoch
+  and every ``--checkpoint-every`` batches, whole and then moved into place; ``--resume`` continues from it and
+  replays the remaining batches exactly, from whatever instant the run was killed at, and refuses, naming the
+  option, a command whose arguments differ from the checkpoint's.
 * ``RUN/weights.pt`` holds the state dict only (``torch.save``; load with ``torch.load(..., weights_only=True)``)
   and ``RUN/manifest.json`` the model config, the class list (HIP numbers, label order), the dataset's identity
-  (name, spec digest, project version), the git commit, the command and the metrics per epoch.
+  (name, spec digest, project version), the git commit, the command, the metrics per epoch and the hashes
+  :func:`~starenv.agents.identify.network.load_network` checks (``weights_sha256``, ``identity_sha256``).
 * ``--set key=value`` sets a :class:`~starenv.agents.identify.network_model.MainStarConfig` field (``depth=4``,
   ``widths=[8,16,16,32,32,64]``); ``n_classes`` comes from the dataset.
 * ``--init RUN`` starts from another run's weights (same config and classes; a fresh optimiser and schedule): the
@@ -24,7 +27,6 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
 import io
 import json
 import math
@@ -38,9 +40,13 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from starenv.agents.identify.network import load_network, manifest_hashes
 from starenv.agents.identify.network_data import ShardDataset, ShardSampler
 from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
 from starenv.files import atomic_file
+
+# The arguments that change the weights a run ends with: a resume must give the checkpoint's.
+RESULT_ARGS = ("seed", "batch", "lr", "epochs", "rot90", "device", "val", "init")
 
 
 def _atomic_save(obj, path: Path) -> None:
@@ -100,21 +106,20 @@ def evaluate(model: MainStarNet, dataset: ShardDataset, device: str, batch: int 
 
 
 def _initial_weights(run: str | Path, model: MainStarNet, classes, device: str) -> dict:
-    """Load ``run``/weights.pt into ``model`` (its manifest's classes must be ``classes``); the manifest's record of
-    it (path and SHA-256)."""
+    """Load ``run``/weights.pt into ``model`` (checked as :func:`~starenv.agents.identify.network.load_network`
+    checks it; its manifest's classes must be ``classes``); the manifest's record of it (path and SHA-256)."""
     run = Path(run)
     try:
-        manifest = json.loads((run / "manifest.json").read_text(encoding="utf-8"))
-        weights = (run / "weights.pt").read_bytes()
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"--init {run}: expected a run folder with weights.pt and manifest.json ({exc})") from exc
-    if [int(h) for h in manifest.get("classes_hip", [])] != [int(h) for h in classes]:
+        net, manifest = load_network(run, device)
+    except ValueError as exc:
+        raise ValueError(f"--init {run}: {exc}") from exc
+    if manifest["classes_hip"] != [int(h) for h in classes]:
         raise ValueError(f"--init {run}: its classes are not this dataset's")
     try:
-        model.load_state_dict(torch.load(io.BytesIO(weights), weights_only=True, map_location=device))
+        model.load_state_dict(net.state_dict())
     except RuntimeError as exc:
         raise ValueError(f"--init {run}: its weights do not fit this model config ({exc})") from exc
-    return {"run": str(run), "weights_sha256": hashlib.sha256(weights).hexdigest()}
+    return {"run": str(run), "weights_sha256": manifest["weights_sha256"]}
 
 
 def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, epochs: int = 10, batch: int = 64,
@@ -151,21 +156,19 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
     n_batches = len(dataset) // batch  # the last partial batch of an epoch is dropped (BatchNorm statistics)
     total = epochs * n_batches
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=total, pct_start=0.15)
-    state = {"epoch": 0, "batch": 0, "history": [], "train_seconds": 0.0}
+    state = {"epoch": 0, "batch": 0, "history": [], "train_seconds": 0.0, "last_loss": None}
+    args = {"seed": seed, "batch": batch, "lr": lr, "epochs": epochs, "rot90": rot90, "device": device,
+            "val": None if val_set is None else val_set.spec_digest,
+            "init": None if start is None else start["weights_sha256"]}
     ckpt = out / "checkpoint.pt"
     if resume and ckpt.is_file():
-        saved = torch.load(ckpt, weights_only=True, map_location=device)
-        if saved["spec_digest"] != dataset.spec_digest or saved["config"] != config.to_dict():
-            raise ValueError(f"--resume: {ckpt} is from another dataset or model config")
-        model.load_state_dict(saved["model"])
-        opt.load_state_dict(saved["optimizer"])
-        sched.load_state_dict(saved["scheduler"])
-        state = saved["state"]
+        state = _resume(ckpt, model, opt, sched, dataset.spec_digest, config, args, device)
         log(f"resuming at epoch {state['epoch']}, batch {state['batch']}")
 
     def checkpoint():
         _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                      "state": state, "spec_digest": dataset.spec_digest, "config": config.to_dict()}, ckpt)
+                      "state": state, "spec_digest": dataset.spec_digest, "config": config.to_dict(),
+                      "args": args}, ckpt)
 
     t0 = time.perf_counter() - state["train_seconds"]
     stopped = False
@@ -186,7 +189,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
                 loss.backward()
                 opt.step()
                 sched.step()
-                state["batch"] = b + 1
+                state["batch"], state["last_loss"] = b + 1, loss.item()
                 state["train_seconds"] = time.perf_counter() - t0
                 bar.update(1)
                 bar.set_postfix(epoch=epoch, loss=f"{loss.item():.3f}")
@@ -197,7 +200,9 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
                     checkpoint()
             if stopped:
                 break
-            record = {"epoch": epoch, "last_loss": loss.item(), "train_seconds": round(state["train_seconds"], 1)}
+            # from the state, not the loop: a run resumed after its epoch's last batch runs no batch here
+            record = {"epoch": epoch, "last_loss": state["last_loss"],
+                      "train_seconds": round(state["train_seconds"], 1)}
             if val_set is not None:
                 record["val"] = evaluate(model, val_set, device)
             state["history"].append(record)
@@ -207,7 +212,10 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
     finally:
         bar.close()
     checkpoint()
-    _atomic_save(model.state_dict(), out / "weights.pt")
+    weights = io.BytesIO()
+    torch.save(model.state_dict(), weights)
+    with atomic_file(out / "weights.pt") as f:
+        f.write(weights.getvalue())
     manifest = {
         "model": "starenv.agents.identify.network_model:MainStarNet",
         "config": config.to_dict(),
@@ -226,8 +234,44 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
         "train_seconds": round(state["train_seconds"], 1),
         "metrics": state["history"],
     }
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    manifest.update(manifest_hashes(manifest, weights.getvalue()))
+    with atomic_file(out / "manifest.json", "w", encoding="utf-8") as f:
+        f.write(json.dumps(manifest, indent=1) + "\n")
     return manifest
+
+
+def _resume(ckpt: Path, model, opt, sched, spec_digest: str, config: MainStarConfig, args: dict,
+            device: str) -> dict:
+    """Load ``ckpt`` into the model, optimiser and schedule; its training state.  A checkpoint of another dataset,
+    config or result-changing argument (:data:`RESULT_ARGS`), or one that cannot be read, is refused."""
+    try:
+        saved = torch.load(ckpt, weights_only=True, map_location=device)
+    except Exception as exc:  # noqa: BLE001  (torch raises many types for a damaged zip or pickle)
+        raise ValueError(f"--resume: {ckpt} cannot be read ({type(exc).__name__}); delete it to start the run "
+                         f"again") from exc
+    if not isinstance(saved, dict) or not {"model", "optimizer", "scheduler", "state", "args"} <= set(saved):
+        raise ValueError(f"--resume: {ckpt} is not a checkpoint of this starenv (keys missing); delete it to start "
+                         f"the run again")
+    if saved.get("spec_digest") != spec_digest or saved.get("config") != config.to_dict():
+        raise ValueError(f"--resume: {ckpt} is from another dataset or model config")
+    for key in RESULT_ARGS:
+        if saved["args"].get(key) != args[key]:
+            raise ValueError(f"--resume: {ckpt} was written with --{key.replace('_', '-')} "
+                             f"{saved['args'].get(key)!r}, this command gives {args[key]!r}; resume with the same "
+                             f"arguments or train into another --out")
+    try:
+        model.load_state_dict(saved["model"])
+        opt.load_state_dict(saved["optimizer"])
+        sched.load_state_dict(saved["scheduler"])
+    except (RuntimeError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"--resume: {ckpt} does not fit this model ({type(exc).__name__}); delete it to start the "
+                         f"run again") from exc
+    state = saved["state"]
+    if not (isinstance(state, dict) and isinstance(state.get("epoch"), int) and isinstance(state.get("batch"), int)
+            and isinstance(state.get("history"), list)):
+        raise ValueError(f"--resume: {ckpt} holds no valid training state; delete it to start the run again")
+    state.setdefault("last_loss", None)
+    return state
 
 
 def _class_hips(spec: dict) -> np.ndarray:

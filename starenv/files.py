@@ -18,9 +18,11 @@ from typing import IO
 def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None = None, *,
                 replace: bool = True) -> Iterator[IO]:
     """Open a temporary file in ``path``'s folder (created if missing) for writing; on a clean exit it replaces
-    ``path``, on an exception it is removed and the exception propagates.  A symbolic link at ``path`` is a
-    FileExistsError (before anything is written); so is an existing ``path`` when ``replace`` is False (checked
-    again, atomically, when the file is moved into place: a hard link that fails if the name exists)."""
+    ``path``, on an exception it is removed and the exception propagates (an OSError that names no file, such as
+    "File too large" or "No space left on device" from a write, is raised again naming ``path``).  A symbolic link
+    at ``path`` is a FileExistsError (before anything is written); so is an existing ``path`` when ``replace`` is
+    False (checked again, atomically, when the file is moved into place: a hard link that fails if the name
+    exists)."""
     path = Path(path)
     _check_target(path, replace)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -35,6 +37,11 @@ def atomic_file(path: str | os.PathLike, mode: str = "wb", encoding: str | None 
             os.replace(tmp, path)
         else:
             _publish_new(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        if exc.filename is None and exc.errno is not None:  # a write error (full disk, file-size limit) names no file
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

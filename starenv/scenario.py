@@ -110,6 +110,7 @@ DISTORTION_KINDS = ("none", "brown_conrady", "radial_xy", "legendre", "radial", 
 RENAMED_DISTORTION_KINDS = {"seed003": "preset"}  # former kind -> its name now (its other keys are unchanged)
 
 
+MAX_SEGMENTS = 10_000  # segments of a sequence motion (each is built and chained when the scenario loads)
 MAX_COMPOSITE_DEPTH = 8  # composite distortions inside composites (each level one Python call deeper)
 
 
@@ -281,7 +282,10 @@ def _motion_kind(tbl: Table, kind: str, head0: Camera, initial: Rotation | None)
             tbl.number("arg_latitude_deg", 0.0, low=-360.0, high=360.0) * DEG,
         )
     segments, att = [], initial
-    for k, seg in enumerate(tbl.tables("segments")):
+    tables = tbl.tables("segments")
+    if len(tables) > MAX_SEGMENTS:
+        tbl.fail("segments", f"at most {MAX_SEGMENTS} segments", f"{len(tables)} segments")
+    for k, seg in enumerate(tables):
         seg_kind = seg.string("kind", choices=tuple(k for k in MOTION_KINDS if k not in ("sequence", "leo_nadir")))
         duration = seg.number("duration_s", low=0.0, high=1e7)
         motion = _motion_kind(seg, seg_kind, head0, att)

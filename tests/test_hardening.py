@@ -732,3 +732,29 @@ def test_fuzz_shards(small_dataset, target, forge, flips, cut, insert):
             # the hash of a changed shard whose meta still fits (only building it again would tell)
             assert forge or all((out / n).read_bytes() == d for n, d in files.items() if n.endswith(".npz"))
         assert time.perf_counter() - t0 < CASE_SECONDS
+
+
+def test_a_bench_run_longer_than_its_scenario_or_absurdly_long_is_refused_by_name():
+    """steps = 2**63 (or any run past the scenario's last frame) would fail or end early mid-bench; both are one
+    error naming the key before anything runs."""
+    from starenv.bench.spec import BenchError, parse_bench
+
+    body = 'name = "b"\nseeds = [0]\nsteps = {steps}\n[[runs]]\nscenario = "paper_000"\npipelines = ["tracking"]\n'
+    with pytest.raises(BenchError, match=r"b\.toml: steps: expected an integer in \[1, 1e\+07\]"):
+        parse_bench(body.format(steps=2**63), "b.toml")
+    with pytest.raises(BenchError, match=r"runs\.0\.steps: expected at most \d+ \(the frames of paper_000"):
+        parse_bench(body.format(steps=10**6), "b.toml")
+
+
+def test_a_gain_that_would_saturate_every_pixel_and_too_many_segments_are_refused():
+    """gain_e_per_dn = 1e-300 turns one electron into 1e300 DN (frames of only 0 and full scale): the gain must be a
+    camera's (>= 1e-3 e-/DN); a sequence motion's segments are each built at load, so their count is bounded."""
+    from starenv import scenario
+
+    with pytest.raises(scenario.ScenarioError, match=r"heads\.0\.detector\.gain_e_per_dn: .*\[0\.001, 10000\]"):
+        scenario.load("paper_000", {"heads.0.detector.gain_e_per_dn": 1e-300})
+    segments = [{"kind": "constant_rate", "rate_dps": [0, 0, 0.1], "duration_s": 1.0}] * (scenario.MAX_SEGMENTS + 1)
+    motion = {"kind": "sequence", "initial_ra_deg": 0.0, "initial_dec_deg": 0.0, "initial_roll_deg": 0.0,
+              "segments": segments}
+    with pytest.raises(scenario.ScenarioError, match=rf"motion\.segments: expected at most {scenario.MAX_SEGMENTS}"):
+        scenario.load("paper_000", {"motion": motion})

@@ -114,3 +114,26 @@ def test_a_stopped_worker_times_out_naming_its_env():
     finally:
         if envs._processes[0].is_alive():
             os.kill(pid, signal.SIGKILL)
+
+
+def test_a_write_error_names_the_file(tmp_path):
+    """A write past the process's file-size limit fails with EFBIG ("File too large"), which names no file; the
+    atomic writer names its target and leaves no temporary file behind."""
+    import subprocess
+    import sys
+
+    target = tmp_path / "big.bin"
+    code = ("import resource, signal, sys\n"
+            "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))\n"
+            "from starenv.files import atomic_file\n"
+            "try:\n"
+            f"    with atomic_file({str(target)!r}) as f:\n"
+            "        f.write(bytes(65536))\n"
+            "except OSError as exc:\n"
+            "    print(exc.errno, exc.filename)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    import errno
+
+    assert out == [str(errno.EFBIG), str(target)]
+    assert list(tmp_path.iterdir()) == []

@@ -244,7 +244,7 @@ INVALID = {
     ),
     "adc_bits = 17": ("paper_000", {"heads.0.detector.adc_bits": 17}, located(P0, "heads.0.detector.adc_bits", "17")),
     "negative gain": (
-        "paper_000", {"heads.0.detector.gain_e_per_dn": -5.0}, located(P0, "heads.0.detector.gain_e_per_dn", "(0,"),
+        "paper_000", {"heads.0.detector.gain_e_per_dn": -5.0}, located(P0, "heads.0.detector.gain_e_per_dn", "[0.001,"),
     ),
     "NaN exposure": ("paper_000", {"exposure_s": NAN}, located(P0, "exposure_s", "a number", "nan")),
     "NaN in a vector": ("paper_000", {"motion.rate_dps": [0.0, NAN, 0.0]}, located(P0, "motion.rate_dps", "numbers")),

@@ -67,6 +67,7 @@ PRESETS: dict[str, dict[str, str]] = {
     "lost_in_space": {"identifier": "starenv.agents.identify:LostInSpaceIdentifier"},
     "tracking": {"identifier": "starenv.agents.identify:TrackingIdentifier"},
 }
+MAX_STEPS = 10**7  # steps of one run: a bench's scenarios may not run longer than their own frames anyway
 FORMAT = 1  # bumps when the meaning of a run's identity changes
 
 
@@ -282,7 +283,7 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
         if not isinstance(v, str):
             top.fail(k, "a string", v)
     default_seeds = _seeds(top, None)
-    default_steps = top.number("steps", None, low=1, integer=True)
+    default_steps = top.number("steps", None, low=1, high=MAX_STEPS, integer=True)
     recorder, recorded_seeds = _recorder(top.get("recordings", False), source)
     pipelines = {}
     ptbl = top.get("pipelines", {})
@@ -323,7 +324,7 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
         seeds = _seeds(g, default_seeds)  # read and checked even where --seeds replaces it
         if forced_seeds is not None:
             seeds = forced_seeds
-        steps = g.number("steps", default_steps, low=1, integer=True)
+        steps = g.number("steps", default_steps, low=1, high=MAX_STEPS, integer=True)
         record = g.get("recordings", True)
         if not isinstance(record, bool):
             g.fail("recordings", "true or false (false: this group's runs are not recorded)", record)
@@ -340,6 +341,8 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
                 except scenario_mod.ScenarioError as exc:
                     shown = f" = {value!r}" if sweep is not None else ""
                     raise BenchError(f"{source}: {where}{shown}: {exc}") from exc
+            if scenario is not None and steps is not None and steps > scenario.n_steps - 1:
+                g.fail("steps", f"at most {scenario.n_steps - 1} (the frames of {sc_name} less one)", steps)
             if check and value == (sweep.values[0] if sweep else None):
                 for n in dict.fromkeys(names):
                     try:

@@ -51,7 +51,7 @@ class DetectorSpec:
     def __post_init__(self):
         checks.in_range("read_noise_e", self.read_noise_e, 0.0, 1000.0, unit="e-")
         checks.in_range("dark_current_e_per_s", self.dark_current_e_per_s, 0.0, 1e6, unit="e-/s")
-        checks.in_range("gain_e_per_dn", self.gain_e_per_dn, 0.0, 1e4, low_open=True, unit="e-/DN")
+        checks.in_range("gain_e_per_dn", self.gain_e_per_dn, 1e-3, 1e4, unit="e-/DN")
         checks.integer("adc_bits", self.adc_bits, 1, 16)
         checks.in_range("bias_dn", self.bias_dn, 0.0, 2.0**self.adc_bits - 1, unit="DN")
         checks.in_range("full_well_e", self.full_well_e, 0.0, 1e8, low_open=True, unit="e-")

@@ -204,3 +204,43 @@ def test_cli_builds_a_dataset_and_names_a_bad_field(tmp_path, capsys):
     bad.write_text(TINY_TOML.replace("radius_deg = 15.0", "radius_deg = 500.0"))
     assert main(["dataset", str(bad), "--out", str(tmp_path / "bad"), "--quiet"]) == 2
     assert "pointing.radius_deg: expected a number in [0.1, 180]" in capsys.readouterr().err
+
+
+class _Killed(BaseException):
+    """Stands for SIGKILL at a chosen write: nothing after it in the build runs (a BaseException, so no handler in
+    the builder catches it)."""
+
+
+def _files(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if not p.name.startswith(".")}
+
+
+def test_a_build_killed_at_any_write_resumes_to_the_same_bytes(tmp_path, monkeypatch):
+    """A build writes dataset.json, then per shard the shard and the index that records its hash: killed before any
+    of those writes (and with a half-written temporary file left beside it, as a real kill leaves), the next build
+    must end with the same files, byte for byte, as a build never interrupted."""
+    import starenv.datasets.shards as shards
+
+    spec = load_spec(SPEC)
+    build_dataset(spec, tmp_path / "whole", jobs=1, progress=False, log=lambda *_: None)
+    whole = _files(tmp_path / "whole")
+    writes = 1 + 2 * spec.n_shards  # the manifest, then each shard and its index entry
+    real_atomic = shards.atomic_file
+    for kill_at in range(writes):
+        out = tmp_path / f"killed-{kill_at}"
+        count = {"n": 0}
+
+        def atomic_file(path, *args, _out=out, _kill=kill_at, _n=count, **kwargs):
+            if _n["n"] == _kill:
+                (_out / f".{path.name}.partial-write.tmp").write_bytes(b"half")  # what a kill mid-write leaves
+                raise _Killed
+            _n["n"] += 1
+            return real_atomic(path, *args, **kwargs)
+
+        monkeypatch.setattr(shards, "atomic_file", atomic_file)
+        out.mkdir()
+        with pytest.raises(_Killed):
+            build_dataset(spec, out, jobs=1, progress=False, log=lambda *_: None)
+        monkeypatch.setattr(shards, "atomic_file", real_atomic)
+        build_dataset(spec, out, jobs=1, progress=False, log=lambda *_: None)
+        assert _files(out) == whole, f"killed before write {kill_at}"

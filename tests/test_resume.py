@@ -170,3 +170,49 @@ def test_a_bench_resume_redoes_a_run_whose_recording_is_empty_or_cut(tmp_path):
         run_bench(bench, tmp_path, jobs=1, progress=False, log=logs.append)
         assert logs[-1] == "ran 1 run(s), reused 0"
         assert len(list(read_steps(recording))) == 2
+
+
+class _Killed(BaseException):
+    """Stands for SIGKILL at a chosen write (a BaseException: no handler in the bench catches it)."""
+
+
+def test_a_bench_killed_before_any_run_file_resumes_to_the_same_scores(tmp_path, monkeypatch):
+    """A bench of three recorded runs killed before each of its run-file writes (a half-written temporary file left
+    beside it, as a kill leaves) and started again must end with the scores of a bench never interrupted, every run
+    file complete and every recording readable."""
+    import starenv.bench.runner as runner
+    from starenv.bench.spec import parse_bench
+    from starenv.record.mcap import read_steps
+
+    bench = parse_bench(BENCH.replace("seeds = [0]", "seeds = [0, 1, 2]"))
+
+    def scores(out):
+        return {p.name: runner.comparable(runner.read_run(p)[1]) for p in sorted((out / "runs").glob("*.jsonl"))}
+
+    runner.run_bench(bench, tmp_path / "whole", jobs=1, progress=False, log=lambda *_: None)
+    whole = scores(tmp_path / "whole")
+    assert len(whole) == 3
+    real_atomic = runner.atomic_file
+    for kill_at in range(len(whole)):
+        out = tmp_path / f"killed-{kill_at}"
+        count = {"n": 0}
+
+        def atomic_file(path, *args, _kill=kill_at, _n=count, **kwargs):
+            if _n["n"] == _kill:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                (path.parent / f".{path.name}.half.tmp").write_bytes(b"{")
+                raise _Killed
+            _n["n"] += 1
+            return real_atomic(path, *args, **kwargs)
+
+        monkeypatch.setattr(runner, "atomic_file", atomic_file)
+        with pytest.raises(_Killed):
+            runner.run_bench(bench, out, jobs=1, progress=False, log=lambda *_: None)
+        monkeypatch.setattr(runner, "atomic_file", real_atomic)
+        (out / runner.LOCK).unlink(missing_ok=True)  # a killed bench leaves its lock (taken over on this host anyway)
+        logs = []
+        runner.run_bench(bench, out, jobs=1, progress=False, log=logs.append)
+        assert f"ran {len(whole) - kill_at} run(s), reused {kill_at}" in logs
+        assert scores(out) == whole, f"killed before run file {kill_at}"
+        for run in bench.runs:
+            assert len(list(read_steps(runner.recording_file(out, run)))) == 2

@@ -86,7 +86,7 @@ def bootstrap_interval(runs: Sequence[np.ndarray], statistic: Callable[[list[np.
         return float("nan"), float("nan")
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     picks = rng.integers(0, len(runs), size=(draws, len(runs)))
-    values = np.array([statistic([runs[i] for i in pick]) for pick in picks])
+    values = np.array([statistic([runs[i] for i in pick]) for pick in picks.tolist()])
     values = values[np.isfinite(values)]
     if len(values) == 0:
         return float("nan"), float("nan")

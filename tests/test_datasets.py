@@ -137,7 +137,7 @@ def test_smear_pairs_hold_each_isolated_star_and_its_sharp_image_at_mid_exposure
     # mass is the star's mid-exposure position and the smeared patch (less its border's median) holds the same light
     # up to noise and the trail's light beyond the patch.  The bounds: a patch placed a pixel (or half of one) off, or
     # cut at the wrong instant, moves the centre of mass by far more than 1e-3 px; a gain, bias or unit error puts the
-    # median flux ratio well outside 0.85-1.2, which the noise of ~20 stars does not.
+    # median flux ratio well outside 0.85-1.2, which the star-to-star noise of a median does not.
     spec = load_spec({**SPEC, "kind": "smear_pairs", "overrides": {"heads.0.width": 256, "heads.0.height": 256,
                       "heads.0.pixel_pitch_um": 48.0, "heads.0.psf_sigma_px": 0.7}, "pointing": {"mode": "uniform"},
                       "stars": {}, "patches": {"size_px": 24}})

@@ -23,7 +23,8 @@ def test_the_split_recovers_bias_noise_and_drift(seed):
     assert abs(split["bias"] - bias) < 5 * sigma / np.sqrt(n)
     # NEA: first differences of white noise are MA(1) with lag-1 correlation -1/2, so the sample deviation's
     # standard error is sigma * sqrt((1 + 2 * 0.25) / (2 n)); the sine's differences add (2 pi A / P)^2 / 4 to the
-    # variance, under 1e-3 of sigma^2 here.  A missing 1/sqrt(2) would give 0.71, the full deviation 1.2.
+    # variance, under 1e-3 of sigma^2 here.  A missing 1/sqrt(2) would give sigma sqrt(2), the plain deviation
+    # sqrt(sigma^2 + A^2 / 2).
     assert abs(split["nea"] - sigma) < 5 * sigma * np.sqrt(1.5 / (2 * n))
     # low frequency: the sine's deviation A/sqrt(2); its error is the NEA's scaled by sigma / (A/sqrt(2))
     assert split["low_frequency"] == pytest.approx(amplitude / np.sqrt(2), abs=0.03)

@@ -71,9 +71,10 @@ def test_agents_restore_light_to_the_mid_exposure_position(paper000):
     bright = [i for i in np.argsort(truth.magnitude)[:6] if cam.in_frame(truth.xy_mid[i], -20.0)]
     assert len(bright) >= 3
     # Least gain of the peak over the smeared one.  A still star's peak is L / (sqrt(2 pi) s) times its smeared peak
-    # (L ~ 10.5 px the trail, s^2 = sigma^2 + 1/12): ~4x here.  A restorer that hands back the smeared frame, or
-    # deconvolves with a kernel along the wrong direction, gains ~1x.  The bounds ask RL and ROI (30 iterations) for
-    # under half the still gain and Wiener (nsr 0.05 trades sharpness for noise) for a third of it.
+    # (L the trail's length in px, s^2 = sigma^2 + 1/12): several times for this trail.  A restorer that hands back
+    # the smeared frame, or deconvolves with a kernel along the wrong direction, gains nothing (a ratio of 1).
+    # The bounds ask RL and ROI (30 iterations) for under half the still gain and Wiener (nsr 0.05 trades sharpness
+    # for noise) for a third of it.
     gains = {RichardsonLucyDeblurrer: 1.8, RoiDeblurrer: 1.8, WienerDeblurrer: 1.3}
     for agent in (RichardsonLucyDeblurrer(30, sigma), RoiDeblurrer(30, sigma), WienerDeblurrer(0.05, sigma)):
         out = agent.deblur(image, 0, step)
@@ -147,9 +148,9 @@ def test_psnr_closed_form_and_scores_of_an_unchanged_image(paper000):
 
 
 def test_roi_restoration_end_to_end_on_a_fast_smeared_frame():
-    # paper_002 at 10 deg/s: ~65 px trails.  Restoration wins on detections and PSNR, not on accuracy: under a
+    # paper_002 at 10 deg/s: trails of tens of px.  Restoration wins on detections and PSNR, not on accuracy: under a
     # constant rate the trail centroid is the mid-exposure position, so blurred centroids are unbiased, while RL of a
-    # 65 px uniform trail leaves along-trail ringing; so only the first two are asserted.  Gathering a faint trail's
+    # long uniform trail leaves along-trail ringing; so only the first two are asserted.  Gathering a faint trail's
     # light back into its spot lifts stars over the detection threshold that the trail kept under it, so a working
     # restorer detects more stars; 3 dB asks for half the blurred frame's squared error against the still reference,
     # which a restorer that hands back the frame (0 dB) or deconvolves along the wrong direction does not reach.

@@ -556,7 +556,7 @@ def test_lost_in_space_labels_out_to_the_measured_centroid_scatter():
     # With 1 px of centroid noise about one detection in 90 lies beyond the 3 px match radius of its star; the
     # labelling radius widens to 4 standard deviations of the scatter measured on the matches (at most 4.5 px), so
     # most of those detections are labelled too (without the widening only the few that the attitude's own error
-    # brings within 3 px), and none wrongly.  Stars to Hp 6.5: about 26 a frame.  The fixed radius alone would leave
+    # brings within 3 px), and none wrongly.  The fixed radius alone would leave
     # exp(-4.5) ~ 1.1 % of the stars unlabelled, a rate under 0.989: the 0.993 bound fails without the widening.
     catalog = load_catalog(6.5, EPOCH)
     identifier = LostInSpaceIdentifier()

@@ -35,7 +35,7 @@ from starenv.parallel import local_executor, ray_executor
 
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 INDEX = "shards.json"  # {"spec_digest": ..., "sha256": {shard file name: SHA-256 of its bytes}}
-MAX_INDEX_BYTES = 1 << 26  # ~90 bytes per shard: far more shards than any spec asks for
+MAX_INDEX_BYTES = 1 << 26  # a name and a 64-digit hash per shard: far more shards than any spec asks for
 
 
 def _version() -> str:

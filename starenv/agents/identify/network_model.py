@@ -30,7 +30,7 @@ from torch import nn
 from torch.nn import functional as F
 
 # Bounds checked before a network is built (a config read from a file must not allocate without limit):
-MAX_PARAMETERS = 2**27  # trainable parameters (512 MiB as float32; the paper's config has 1.5 M)
+MAX_PARAMETERS = 2**27  # trainable parameters (512 MiB as float32; far above the paper's configuration)
 MAX_INPUT_SIZE = 1024  # px: (1024 / 16)^2 = 4096 tokens, attention maps of 4096^2 per head (the paper: 256)
 MAX_FIELD = 2**16  # any single size (classes, channels, depth, heads, dims)
 

@@ -32,7 +32,7 @@ __doc__ += metrics.record_table() + "\n"
 class StepLog:
     """Everything about step ``index``: observation ``k`` (what the sensor delivered), the truth of that frame, the
     pipeline's action for it (None without a pipeline), its scores (``info["scores"]``) and the flat score record;
-    for a filtered pipeline also the filter's bias estimate and covariance (None otherwise)."""
+    for a filtered pipeline also the filter's bias estimate and covariance (None otherwise); the agents' events."""
 
     index: int
     obs: dict
@@ -45,6 +45,7 @@ class StepLog:
     pipeline: Any = None
     gyro_bias: np.ndarray | None = None  # (3,) rad/s body frame: a filter's bias estimate (StepReport.gyro_bias)
     covariance: np.ndarray | None = None  # (6, 6): a filter's error covariance (StepReport.covariance)
+    events: list[tuple[int, str]] = field(default_factory=list)  # (level, text): the agents' (StepReport.events)
 
 
 class Observer(Protocol):
@@ -101,7 +102,7 @@ def run_episode(env, pipeline: Policy | None = None, seed: int | None = None, st
             record = flatten(info["scores"], latency, restoration, filter_scores)
             result.records.append(record)
             log = StepLog(k, obs, truth, action, info["scores"], record, report.source, latency, pipeline,
-                          report.gyro_bias, report.covariance)
+                          report.gyro_bias, report.covariance, list(report.events))
             for o in started:
                 o.step(log)
             obs = next_obs

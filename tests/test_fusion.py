@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from starenv import scenario
-from starenv.agents.base import AttitudeFilter, StarMeasurements, StepInput
+from starenv.agents.base import INFO, WARNING, AttitudeFilter, StarMeasurements, StepInput
 from starenv.agents.fuse.mekf import MekfPredictor, process_noise
 from starenv.agents.pipeline import Pipeline
 from starenv.agents.solve.solvers import QuestSolver
@@ -189,14 +189,21 @@ def test_a_state_the_stars_keep_contradicting_is_restarted():
         filt.reset([CAMERA], CATALOG)
         off = Rotation.from_rotvec(CAMERA.mounting.inv().apply([0.0, 0.0, 0.2 * DEG])) * TRUTH
         filt.update(off, [stars_at(off, rng, 0.0)], 0.0)
-        used = []
+        used, events = [], []
         for k in range(1, 6):
             filt.predict(moving_step(np.zeros(3), k / FRAME_HZ, 0.01))
             filt.update(TRUTH, [stars_at(TRUTH, rng, 0.1)], k / FRAME_HZ)
             used.append(filt.stars_used)
+            events.append(filt.events)
         error = (filt.posterior()[0] * TRUTH.inv()).magnitude() / ARCSEC
         if last_good:
             assert used[:2] == [0, 0] and used[2] > 10 and error < 10.0
+            # the recording's log says why: every star gated on the two frames before, then the restart
+            for rejected in events[:2]:
+                assert [level for level, _ in rejected] == [WARNING]
+                assert "gate rejected" in rejected[0][1] or "rejected the frame whole" in rejected[0][1]
+            assert events[2][-1] == (WARNING, "filter restarted from the frame's solution after 3 contradicted "
+                                              f"frames ({used[2]} stars)")
         else:
             assert used == [0] * 5 and error > 0.15 * DEG / ARCSEC
 
@@ -225,6 +232,7 @@ def test_a_planted_false_star_is_rejected():
     wrong[0] = CATALOG.hip[np.argmax(CATALOG.unit @ -TRUTH.inv().apply([0.0, 0.0, 1.0]))]  # a star behind the sensor
     filt.update(TRUTH, [StarMeasurements(stars.xy, catalog_id=wrong)], 0.0)
     assert filt.stars_rejected == 1 and filt.stars_used == len(stars) - 1
+    assert filt.events[-1] == (INFO, f"filter gate rejected 1 of {len(stars)} stars")
     with_false = filt.posterior()
     filt.reset([CAMERA], CATALOG)
     filt.update(TRUTH, [StarMeasurements(stars.xy[1:], catalog_id=stars.catalog_id[1:])], 0.0)

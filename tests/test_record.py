@@ -565,9 +565,10 @@ class Posterior:
     gyro bias and attitude."""
 
     def start(self, env, seed, pipeline):
-        self.filter, self.states = pipeline.agents["predictor"], []
+        self.filter, self.states, self.events = pipeline.agents["predictor"], [], []
 
     def step(self, log):
+        self.events.append(list(self.filter.events))
         self.states.append((*self.filter.posterior(), log.truth["gyro_bias"], log.truth["attitude"],
                             log.record["attitude_error_arcsec"]))
 
@@ -586,7 +587,7 @@ def filtered(tmp_path_factory):
         patch.setenv("CI", "1")
         run_episode(env, pipe, seed=0, steps=STEPS,
                     observers=[McapRecorder(tmp / "run.mcap"), RerunRecorder(tmp / "live.rrd"), seen])
-    return tmp, seen.states
+    return tmp, seen.states, seen.events
 
 
 DEG_HR, ARCSEC_PER_RAD = np.degrees(1.0) * 3600.0, np.degrees(1.0) * 3600.0  # rad/s -> deg/h, rad -> arcsec
@@ -595,7 +596,7 @@ DEG_HR, ARCSEC_PER_RAD = np.degrees(1.0) * 3600.0, np.degrees(1.0) * 3600.0  # r
 def test_the_filter_state_is_recorded_as_the_filter_reported_it(filtered, run):
     """The /filter channel holds, per step, the filter's own attitude, bias (deg/h), the true bias and the square
     roots of its covariance's diagonal (arcsec, deg/h); a pipeline without a filter writes no /filter channel."""
-    tmp, states = filtered
+    tmp, states, _ = filtered
     with open(tmp / "run.mcap", "rb") as f:
         decoded = [(ch, msg) for _, ch, _, msg in make_reader(f, decoder_factories=[DecoderFactory()])
                    .iter_decoded_messages(topics=["/filter"])]
@@ -616,13 +617,25 @@ def test_the_filter_state_is_recorded_as_the_filter_reported_it(filtered, run):
     assert "/filter" not in topics and all(s.filter is None for s in read_steps(run[0] / "run.mcap"))
 
 
+def test_the_filters_events_are_in_the_recordings_log(filtered):
+    """Every event the filter reported on a step (its start, gate rejections, restarts) is a /log line of that step,
+    in order, read back from the MCAP file; the first step's is the filter's start."""
+    tmp, _, events = filtered
+    steps = list(read_steps(tmp / "run.mcap"))
+    assert len(steps) == len(events)
+    for k, (step, reported) in enumerate(zip(steps, events, strict=True)):
+        logged = [(level, text) for level, text in step.logs if text.startswith(f"frame {k}: filter")]
+        assert logged == [(level, f"frame {k}: {text}") for level, text in reported]
+    assert events[0][0][1].startswith("filter started from the frame's solution")
+
+
 def test_the_rerun_review_plots_the_filter_against_truth(filtered, tmp_path):
     """Live and from the MCAP, per body axis: the attitude error (rotation vector of A_est A_true^T, arcsec) and the
     bias error (deg/h) beside the filter's +-3 sigma, and the bias estimate beside the truth; the review of a
     recording without a filter has no filter series."""
     import rerun as rr
 
-    tmp, states = filtered
+    tmp, states, _ = filtered
     review = rrd_content(mcap_to_rrd(tmp / "run.mcap", tmp_path / "review.rrd"))
     assert review == rrd_content(tmp / "live.rrd")
     series = {}

@@ -130,7 +130,7 @@ def test_every_overlay_kind_is_logged_with_its_class_and_the_legend_names_them_a
             for c in context} == {k: (c.label, rgba(c.color)) for k, c in CLASSES.items()}
     legend = statics["/legend"]["TextDocument:text"][0]
     assert all(c.label in legend and c.colour_name in legend for c in CLASSES.values())
-    assert legend == legend_markdown()
+    assert legend == legend_markdown([p for h in (None, 0) for p in review.metric_panels(step_log_keys(), h)])
     base = "/head0/image"
     assert rows[f"{base}/truth", 0]["LineStrips2D:class_ids"] == [TRUTH]  # one class for every ring
     assert len(rows[f"{base}/truth", 0]["LineStrips2D:strips"]) == len(TRUE_IDS)
@@ -245,6 +245,28 @@ def test_panels_hold_one_unit_and_only_groups_with_data(n_heads):
             assert len(container.contents) % container.grid_columns == 0  # a full grid: no empty cell
     with_gain = blueprint([(512, 512)], {**keys, "restoration_psnr_gain_db": 1.0})
     assert "metrics/gain" in {v.origin for v in views(with_gain.root_container)}
+
+
+def step_log_keys() -> list[str]:
+    return list(step_log(0, StarSensorEnv("paper_000"), np.zeros((512, 512), np.uint16)).record)
+
+
+def test_no_plot_draws_a_legend_and_each_series_colour_is_distinct_in_its_panel_and_named(constructed):
+    """Legends stay off the lines: every time-series view hides its legend; within a panel every series has its own
+    colour (logged with the series' style), and the legend panel names the colour of each series whose panel title
+    does not (axis errors are named red / green / blue in their titles)."""
+    _, statics, *_ = constructed
+    keys = {**FIRST_RECORD, "head1_error_x_arcsec": 0.1}
+    bp = blueprint([(512, 512)] * 2, keys, with_filter=True)
+    for view in views(bp.root_container):
+        if isinstance(view, rrb.TimeSeriesView):
+            assert list(view.properties["PlotLegend"].visible.as_arrow_array().to_pylist()) == [False], view.name
+    legend = statics["/legend"]["TextDocument:text"][0]
+    for panel in review.metric_panels(step_log_keys(), None):
+        logged = [statics["/" + path]["SeriesLines:colors"][0] for path in panel.paths]
+        assert logged == [rgba(c) for c in panel.rgb] and len(set(logged)) == len(logged), panel.title
+        for name, colour in panel.colours:
+            assert f"{name} {colour}" in legend
 
 
 def test_the_raw_counts_are_a_transparent_layer_above_the_stretch_so_hovering_reads_them(constructed):

@@ -20,6 +20,9 @@ from starenv.sim.gyro import GyroSamples
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 
+# Event levels (StepReport.events), as foxglove.Log numbers them.
+INFO, WARNING, ERROR = 2, 3, 4
+
 MAX_STARS = 256  # rows of the per-head star lists in an action
 
 
@@ -43,6 +46,8 @@ class StepInput:
     exposure_s: float
     gyro: GyroSamples  # samples since the previous step
     cameras: list[Camera]  # calibrated models
+    # (3,) m/s, ICRS axes: the sensor's velocity (navigation), for the stars' aberration; zeros when not given
+    observer_velocity_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 def step_input(obs: dict, sensor: SensorInfo) -> StepInput:
@@ -56,6 +61,7 @@ def step_input(obs: dict, sensor: SensorInfo) -> StepInput:
         exposure_s=float(obs["exposure_s"]),
         gyro=GyroSamples(np.asarray(gyro["t"][:n]), np.asarray(gyro["rate"][:n]), 1.0 / sensor.gyro_rate_hz),
         cameras=sensor.cameras,
+        observer_velocity_m_s=np.asarray(obs.get("observer_velocity_m_s", np.zeros(3)), dtype=np.float64),
     )
 
 
@@ -106,7 +112,8 @@ class Predictor(Protocol):
 @runtime_checkable
 class AttitudeFilter(Predictor, Protocol):
     """A predictor that fuses: ``update`` takes the identified (measured) stars even when nothing was solved, and
-    ``posterior`` is the pipeline's estimate -- attitude, gyro bias (3,) rad/s and error covariance -- or None."""
+    ``posterior`` is the pipeline's estimate -- attitude, gyro bias (3,) rad/s and error covariance -- or None.  An
+    ``events`` attribute, if it has one, lists the last update's events (level, text) for the recording's log."""
 
     def posterior(self) -> tuple[Rotation, np.ndarray, np.ndarray] | None: ...
 
@@ -180,7 +187,8 @@ class Restoration:
 class StepReport:
     """What a policy reports about its last step: wall time per role (s), where the attitude came from ("solved",
     "predicted" or "none"), per head the restoration (None where nothing was restored; empty without a deblurrer),
-    the detector that scores restorations (None without one), and a filter's gyro bias estimate and covariance."""
+    the detector that scores restorations (None without one), a filter's gyro bias estimate and covariance, and the
+    agents' events of the step (a filter's gate rejections and restarts), for the recording's log."""
 
     latency_s: dict[str, float] = field(default_factory=dict)
     source: str = "none"
@@ -188,6 +196,7 @@ class StepReport:
     detector: StarDetector | None = None
     gyro_bias: np.ndarray | None = None  # (3,) rad/s, a filter's bias estimate
     covariance: np.ndarray | None = None  # (6, 6) a filter's error covariance (attitude rad^2 first, then bias)
+    events: list[tuple[int, str]] = field(default_factory=list)  # (level, text): what the agents did of note
 
 
 @runtime_checkable

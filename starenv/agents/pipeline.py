@@ -279,6 +279,7 @@ class Pipeline:
             if attitude is not None:
                 self._timed("predictor", ag["predictor"].update, attitude, identified, step.time_s)
                 attitude, report.gyro_bias, report.covariance = ag["predictor"].posterior()
+                report.events.extend(getattr(ag["predictor"], "events", ()))
         elif attitude is not None and ag["predictor"] is not None:
             carried = identified if report.source == "solved" else prediction.stars
             self._timed("predictor", ag["predictor"].update, attitude, carried, step.time_s)

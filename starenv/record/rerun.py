@@ -23,7 +23,8 @@ Both paths log each step through one :class:`Review`, so they produce the same e
 * ``status/{flag}`` (each flag of the record, unit ``0/1``: yes / no / no value) and ``status/frames`` (all
   delivered, or the heads whose frame was dropped): the status timeline, a state logged when it changes (the flags'
   series are logged too, but laid out there rather than as overlapping 0/1 lines);
-* ``log``: the recording's own log lines (dropped frames, steps without a solution, the error that stopped a run);
+* ``log``: the recording's own log lines (dropped frames, steps without a solution, a fusion filter's start, gate
+  rejections and restarts, the error that stopped a run);
   ``log/events``: the review's own, from the step sequence: the first fix, each loss of fix and re-acquisition (a fix:
   solved and within the threshold, as ``starenv.datasheet`` counts them) and every wrong identification;
 * ``attitude/true`` and ``attitude/estimate``: 3-D arrows in ICRS (unit sphere): the body's +X, +Y, +Z axes (red,
@@ -74,6 +75,12 @@ AXIS_COLORS = np.array([(230, 40, 40), (40, 200, 40), (60, 90, 255)])  # x, y, z
 AXES = {"x": 0, "y": 1, "z": 2, "roll": 2}
 UNIT_WORDS = {"arcsec", "px", "ms", "db", "deg", "hr", "error"}  # left out of a series' name: its panel states the unit
 MAGNITUDE_COLOR = (170, 170, 170)  # an arcsec error that is an angle, not about one axis
+AXIS_NAMES = ("red", "green", "blue")
+# The other series' colours, in a panel's order: Okabe and Ito's colour-blind-safe set (white for its black, on the
+# viewer's dark background), named in the legend panel.
+PALETTE = (((230, 159, 0), "orange"), ((86, 180, 233), "sky blue"), ((0, 158, 115), "bluish green"),
+           ((240, 228, 66), "yellow"), ((0, 114, 178), "blue"), ((213, 94, 0), "vermillion"),
+           ((204, 121, 167), "reddish purple"), ((255, 255, 255), "white"))
 FLAG_UNIT = "0/1"  # a flag's unit: shown as a state (yes / no) on the status timeline, not as a series
 UNIT_NAMES = {"": "unitless", None: "mixed units"}
 
@@ -133,14 +140,23 @@ def series_name(key: str) -> str:
     return " ".join(words) or key
 
 
-def _axis_color(key: str) -> tuple[int, int, int] | None:
-    """The fixed colour of a key's series: a per-axis error's axis colour (its last word naming an axis), grey for
-    another arcsec error (an angle: the total, across the boresight); None (the viewer's choice) for the rest."""
+def _axis_color(key: str) -> tuple[tuple[int, int, int], str] | None:
+    """The fixed colour (RGB, name) of a key's series: a per-axis error's axis colour (its last word naming an axis),
+    grey for another arcsec error (an angle: the total, across the boresight); None for the rest."""
     axes = [AXES[w] for w in key.split("_") if w in AXES]
     if axes:
-        return tuple(int(c) for c in AXIS_COLORS[axes[-1]])
+        return tuple(int(c) for c in AXIS_COLORS[axes[-1]]), AXIS_NAMES[axes[-1]]
     found = metrics.find(key)
-    return MAGNITUDE_COLOR if found is not None and found[0].unit == "arcsec" else None
+    return (MAGNITUDE_COLOR, "grey") if found is not None and found[0].unit == "arcsec" else None
+
+
+def series_colours(keys) -> dict[str, tuple[tuple[int, int, int], str]]:
+    """The colour (RGB, name) of each of one panel's ``keys``: an axis' or an angle's fixed colour, else the next of
+    :data:`PALETTE` in the keys' order (so no panel needs a legend over its lines)."""
+    out, free = {}, iter(PALETTE * (1 + len(keys) // len(PALETTE)))
+    for key in keys:
+        out[key] = _axis_color(key) or next(free)
+    return out
 
 
 def _unit(key: str) -> str | None:
@@ -150,13 +166,15 @@ def _unit(key: str) -> str | None:
 
 class Panel(NamedTuple):
     """A metric panel: its origin (``metrics/{group}``, a head's ``metrics/{group}/head{h}``), title, the entity
-    paths it shows (none: its origin's subtree) and whether every series has a fixed colour (named in the title:
-    no legend)."""
+    paths it shows (none: its origin's subtree), their colours (RGB, in the paths' order) and, for the legend
+    panel, (series name, colour name) of each (none: the title names them).  No panel draws a legend over its lines.
+    """
 
     origin: str
     title: str
     paths: tuple[str, ...] = ()
-    fixed_colours: bool = False
+    rgb: tuple[tuple[int, int, int], ...] = ()
+    colours: tuple[tuple[str, str], ...] = ()
 
 
 def _title(group: str, unit: str | None) -> str:
@@ -181,8 +199,11 @@ def metric_panels(keys=None, head: int | None = None) -> list[Panel]:
         group_keys = metrics.order(chosen[group, unit])
         origin = f"metrics/{group}" + ("" if head is None else f"/head{head}")
         title = _title(group, unit) if head is None else f"head {head}: {_title(group, unit)}"
+        colours = series_colours(group_keys)
+        named = () if all(_axis_color(k) for k in group_keys) else tuple(
+            (series_name(k), colours[k][1]) for k in group_keys)
         out.append(Panel(origin, title, tuple(metric_path(k) for k in group_keys),
-                         all(_axis_color(k) is not None for k in group_keys)))
+                         tuple(colours[k][0] for k in group_keys), named))
     return out
 
 
@@ -203,10 +224,12 @@ IMAGE_DRAW_ORDER, RAW_DRAW_ORDER = 0.0, 5.0  # the raw counts above the stretche
 STRETCH_NOTE = "asinh stretch above the background"
 
 
-def legend_markdown() -> str:
+def legend_markdown(panels: list[Panel] = ()) -> str:
     """The legend panel's text: every marker class, the frames' stretch, the 3-D view, the status timeline, the
-    plots, the log."""
+    plots (the colour of each series of ``panels`` whose title does not name them), the log."""
     markers = "\n".join(f"- **{c.colour_name} {c.shape}**: {c.label}" for c in CLASSES.values())
+    colours = "".join(f"\n- *{p.title}*: " + ", ".join(f"{name} {colour}" for name, colour in p.colours)
+                      for p in panels if p.colours)
     return f"""**Markers** (hover one for its HIP number; only wrong identifications are labelled):
 {markers}
 
@@ -220,21 +243,22 @@ classes) at the estimated one.
 
 **Status**: a row per flag (green: holds, red: does not) and one for the frames (red: a head's dropped).
 
-**Plots**: errors about an axis x red, y green, z / roll blue; angles grey.  Hover a plot for every series' value.
+**Plots** (no legend over the lines; hover a plot for every series' value): errors about an axis x red, y green,
+z / roll blue; angles grey; the other series:{colours}
 
-**Log**: dropped frames, steps without a solution, first fix, fix lost / re-acquired, wrong identifications, the
-error that stopped a run.
+**Log**: dropped frames, steps without a solution, first fix, fix lost / re-acquired, wrong identifications, a
+filter's gate rejections and restarts, the error that stopped a run.
 """
 
 
 def _series_view(panel: Panel):
-    """A time-series view of ``panel``: the tooltip lists every series at the hovered time; a legend (top left) only
-    where the series' colours are not fixed and named in the title."""
+    """A time-series view of ``panel``: the tooltip lists every series at the hovered time; no legend over the lines
+    (the title or the legend panel names the colours)."""
     import rerun.blueprint as rrb
 
     contents = [f"+ {p}" for p in panel.paths] or ["+ $origin/**"]
     return rrb.TimeSeriesView(origin=panel.origin, name=panel.title, contents=contents,
-                              plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop, visible=not panel.fixed_colours),
+                              plot_legend=rrb.PlotLegend(visible=False),
                               interaction=rrb.PlotInteraction(tooltip_mode=rrb.components.TooltipMode.All))
 
 
@@ -259,7 +283,7 @@ def _log_view():
     return rrb.TextLogView(origin="log", name="log: events", columns=columns)
 
 
-GYRO = Panel("gyro", "gyro rate (deg/s) about body x y z: red green blue", fixed_colours=True)
+GYRO = Panel("gyro", "gyro rate (deg/s) about body x y z: red green blue")
 
 
 def blueprint(sizes: list[tuple[int, int]], keys=(), with_filter: bool = False, eye=None):
@@ -278,7 +302,7 @@ def blueprint(sizes: list[tuple[int, int]], keys=(), with_filter: bool = False, 
     heads = rrb.Grid(*cells, grid_columns=2) if len(cells) == 4 else rrb.Horizontal(*cells)
     series = [_series_view(p) for p in metric_panels(keys)]
     if with_filter:
-        series += [_series_view(Panel(origin, name, fixed_colours=True)) for origin, name in FILTER_VIEWS.items()]
+        series += [_series_view(Panel(origin, name)) for origin, name in FILTER_VIEWS.items()]
     series.append(_series_view(GYRO))
     status = rrb.StateTimelineView(origin="status", name="status: flags and frames delivered")
     sky = rrb.Spatial3DView(origin="attitude", name="attitude: true vs estimate (ICRS)", eye_controls=eye,
@@ -423,6 +447,7 @@ class Review:
         self._state: dict[str, str] = {}
         self._ever_fixed = False
         self._lost_ns: int | None = None  # sim time of the loss of fix not yet re-acquired
+        self._colours: dict[str, tuple[int, int, int]] = {}  # metric entity path -> its series' colour
 
     def _layout(self, data: StepData | None) -> None:
         """Send the layout (panels for the groups the first step's record keys belong to, the 3-D eye at its true
@@ -432,8 +457,10 @@ class Review:
         keys = {} if data is None else data.record
         eye = None if data is None or not data.heads else _eye(data.attitude_true, self.boresights)
         self.rec.send_blueprint(blueprint(self.sizes, keys, self.with_filter, eye))
+        panels = [p for head in (None, *range(len(self.sizes))) for p in metric_panels(keys, head)]
+        self._colours = {path: rgb for p in panels for path, rgb in zip(p.paths, p.rgb, strict=True)}
         self.rec.log("/", rr.AnnotationContext([(k, c.label, c.color) for k, c in CLASSES.items()]), static=True)
-        self.rec.log("legend", rr.TextDocument(legend_markdown(), media_type="text/markdown"), static=True)
+        self.rec.log("legend", rr.TextDocument(legend_markdown(panels), media_type="text/markdown"), static=True)
         for key in flag_keys(keys):
             name = series_name(key)
             self.rec.log(f"status/{key}", rr.StateConfiguration(values=["yes", "no", "none"],
@@ -540,7 +567,8 @@ class Review:
                 continue
             path = metric_path(key)
             if path not in self._named:
-                color = _axis_color(key)
+                fixed = _axis_color(key)  # a key the first step's record did not hold: its fixed colour, if any
+                color = self._colours.get(path, None if fixed is None else fixed[0])
                 self.rec.log(path, rr.SeriesLines(names=series_name(key), colors=None if color is None else [color]),
                              static=True)
                 self._named.add(path)

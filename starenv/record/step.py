@@ -12,8 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-# Log levels, as foxglove.Log numbers them.
-INFO, WARNING, ERROR = 2, 3, 4
+from starenv.agents.base import ERROR, INFO, WARNING  # noqa: F401  log levels, as foxglove.Log numbers them
 
 
 @dataclass
@@ -112,6 +111,7 @@ def from_step_log(log, sizes: list[tuple[int, int]]) -> StepData:
         logs.append((WARNING, f"frame {log.index}: no attitude solution, reporting the gyro prediction"))
     elif log.pipeline is not None and log.source == "none":
         logs.append((WARNING, f"frame {log.index}: no attitude (no solution and no prediction)"))
+    logs += [(level, f"frame {log.index}: {text}") for level, text in log.events]
     estimate = None
     if action is not None and log.scores["available"]:
         q = np.asarray(action["attitude"], dtype=np.float64)

@@ -53,7 +53,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from starenv import checks
-from starenv.agents.base import Prediction, StarMeasurements, StepInput
+from starenv.agents.base import INFO, WARNING, Prediction, StarMeasurements, StepInput
 from starenv.agents.predict.gyro import QuaternionPredictor
 from starenv.sim.conventions import ARCSEC, DEG
 from starenv.sim.gyro import GM_PEAK_ADEV_PER_SIGMA, IEEE_FLICKER_FLOOR
@@ -116,6 +116,7 @@ class MekfPredictor(QuaternionPredictor):
         self.stars_used = 0
         self.stars_rejected = 0
         self.frame_rejected = False
+        self.events: list[tuple[int, str]] = []  # the last update's gate rejections and restart (level, text)
 
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
         super().reset(cameras, catalog)
@@ -168,11 +169,16 @@ class MekfPredictor(QuaternionPredictor):
         rows = [self._catalog_rows(s.catalog_id) for s in stars]
         prior = self._predicted
         self._predicted = None
+        self.events = []
         if prior is None:
             self._rejected_run = 0
-            return self._measurement_update(attitude, np.zeros(3), self.p0.copy(), stars, rows)
+            posterior = self._measurement_update(attitude, np.zeros(3), self.p0.copy(), stars, rows)
+            self.events = [(INFO, f"filter started from the frame's solution ({self.stars_used} stars)")]
+            self._note_rejections()
+            return posterior
         carried, _, bias, cov = prior
         posterior = self._measurement_update(carried, bias, cov, stars, rows)
+        self._note_rejections()
         contradicted = self.frame_rejected or (self.stars_used == 0 and self.stars_rejected > 0)
         self._rejected_run = self._rejected_run + 1 if contradicted else 0
         if self._rejected_run < self.restart_after:
@@ -180,7 +186,20 @@ class MekfPredictor(QuaternionPredictor):
         self._rejected_run = 0  # start again from the solution, keeping the bias and its covariance
         start = self.p0.copy()
         start[3:, 3:] = cov[3:, 3:]
-        return self._measurement_update(attitude, bias, start, stars, rows)
+        posterior = self._measurement_update(attitude, bias, start, stars, rows)
+        self.events.append((WARNING, f"filter restarted from the frame's solution after {self.restart_after} "
+                                     f"contradicted frames ({self.stars_used} stars)"))
+        return posterior
+
+    def _note_rejections(self) -> None:
+        """The last measurement update's gate rejections as events."""
+        if self.frame_rejected:
+            self.events.append((WARNING, "filter rejected the frame whole (normalised innovation beyond its "
+                                         f"{FRAME_CONFIDENCE:.1%} chi-square bound)"))
+        elif self.stars_rejected:
+            level = WARNING if self.stars_used == 0 else INFO
+            self.events.append((level, f"filter gate rejected {self.stars_rejected} of "
+                                       f"{self.stars_rejected + self.stars_used} stars"))
 
     def _measurement_update(self, attitude, bias, cov, stars, rows):
         residuals, jacobians, noises = [], [], []

@@ -47,6 +47,7 @@ def _version() -> str:
 
 
 def shard_path(out: str | Path, shard: int) -> Path:
+    """The file of shard number ``shard`` in the dataset folder ``out``."""
     return Path(out) / f"shard-{shard:05d}.npz"
 
 

@@ -8,15 +8,23 @@ env's overhead (a byte to step, the frames written straight into shared memory, 
 env driven by the scenario's own pipeline, with and without prefetch (the next frame simulated on a thread while the
 pipeline works); then a cProfile of single-env steps.
 
-Goals: >= 300 steps/s; >= 1.8x with 2 workers.  The machines are shared: each figure is the median of ``--repeats``
-rounds, every round timing all variants back to back, and the floor of a step (one float32 standard normal per pixel
-of the frame with numpy's Generator, the read-out's noise draw) is timed in the same rounds, alone and in two processes
-at once: the second gives the ceiling any 2-worker speed-up has on this machine (two cores that share a physical core
-or memory bandwidth give less than 2x).  The CPU time per env step of the vector env's workers and main process is
-printed beside the single env's: two cores cannot run more than 2 / (their sum) env steps a second, whatever the
-schedule.  The 1-minute load average is printed before and after.
+Then ``env.step`` on a 1024 x 1024 frame (paper 002's optics, stars to magnitude 7, ~40 on a frame; 50 ms exposure,
+~30 px trails; noise on; the true attitude of the last frame sent as the action, so the step scores it): everything a
+step does (scoring, the star render, the read-out, the gyro, truth and observation) against the floor of drawing the
+frame's noise, one float32 standard normal per pixel, each step timed beside one floor draw.  Each round points the
+camera somewhere else, drawn from ``--seed``.
 
-    python benchmarks/env_speed.py [--steps N] [--repeats N] [--profile-steps N]
+Goals: >= 300 steps/s; >= 1.8x with 2 workers; a 1024 x 1024 ``env.step`` <= 1.5x the floor.  The machines are shared:
+each figure is the median of ``--repeats`` rounds with its spread (lowest and highest round) beside it, every round
+timing all variants back to back, and the floor of a step (one float32 standard normal per pixel of the frame with
+numpy's Generator, the read-out's noise draw) is timed in the same rounds, alone and in two processes at once: the
+second gives the ceiling any 2-worker speed-up has on this machine (two cores that share a physical core or memory
+bandwidth give less than 2x).  The CPU time per env step of the vector env's workers and main process is printed
+beside the single env's: two cores cannot run more than 2 / (their sum) env steps a second, whatever the schedule.
+The 1-minute load average is printed before and after.  Every env is seeded from ``--seed`` (env ``i`` of a vector
+env with ``seed + i``); ``--parts`` picks what to time.
+
+    python benchmarks/env_speed.py [--seed N] [--steps N] [--repeats N] [--profile-steps N] [--parts step,vector,...]
 """
 
 from __future__ import annotations
@@ -24,6 +32,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import io
+import math
 import multiprocessing
 import os
 import pstats
@@ -35,13 +44,17 @@ import numpy as np
 import starenv  # noqa: F401  (registers the ids)
 
 ENV_ID = "StarEnv/Paper000-v0"
+FRAME_SCENARIO = "paper_002"  # the 1024 x 1024 step: paper 002's optics (12 deg field)
+FRAME_MAG_LIMIT = 7.0  # stars to Hp 7 put ~40 on a 12 deg frame at a random pointing
+FRAME_EXPOSURE_S = 0.05
+FRAME_TRAIL_PX = 30.0  # trail length on the boresight
 
 
-def single(steps: int) -> tuple[float, float]:
+def single(steps: int, seed: int) -> tuple[float, float]:
     """Steps/s of one env, and its CPU time (s) per step."""
     env = gym.make(ENV_ID)
     action = env.unwrapped.null_action()  # the same (empty) action the vector env sends
-    env.reset(seed=0)
+    env.reset(seed=seed)
     env.step(action)
     cpu, t0 = time.process_time(), time.perf_counter()
     for _ in range(steps):
@@ -54,7 +67,8 @@ def single(steps: int) -> tuple[float, float]:
     return rate, cpu
 
 
-def vector(steps: int, workers: int, shared_memory: bool, prefetch: bool = False) -> tuple[float, float, float]:
+def vector(steps: int, workers: int, shared_memory: bool, seed: int,
+           prefetch: bool = False) -> tuple[float, float, float]:
     """Steps/s (all workers) of an async vector env, and the CPU time (s) per env step of the main process and of
     the workers (their env step, the pipes, the shared memory; with their set-up and ``steps = 0``'s share of it
     taken off by the caller); ``prefetch``: each worker's env simulates its next frame while the main process
@@ -64,7 +78,7 @@ def vector(steps: int, workers: int, shared_memory: bool, prefetch: bool = False
                         vector_kwargs={"shared_memory": shared_memory}, prefetch=prefetch)
     template = envs.env_fns[0]().unwrapped.null_action()
     action = {k: np.stack([v] * workers) for k, v in template.items()}
-    envs.reset(seed=0)
+    envs.reset(seed=seed)
     envs.step(action)
     main_cpu, t0 = time.process_time(), time.perf_counter()
     for _ in range(steps):
@@ -77,7 +91,7 @@ def vector(steps: int, workers: int, shared_memory: bool, prefetch: bool = False
     return rate, main_cpu / max(steps * workers, 1), worker_cpu / max(steps * workers, 1)
 
 
-def lean_vector(steps: int, workers: int, infos: bool, copy: bool) -> float:
+def lean_vector(steps: int, workers: int, infos: bool, copy: bool, seed: int) -> float:
     """Steps/s (all workers) of starenv's ``SharedMemoryVectorEnv`` (actions, observations, rewards and flags in
     shared memory)."""
     from starenv.vector import SharedMemoryVectorEnv
@@ -85,7 +99,7 @@ def lean_vector(steps: int, workers: int, infos: bool, copy: bool) -> float:
     envs = SharedMemoryVectorEnv.from_id(ENV_ID, workers, workers=workers, infos=infos, copy=copy)
     template = gym.make(ENV_ID).unwrapped.null_action()
     action = {k: np.stack([v] * workers) for k, v in template.items()}
-    envs.reset(seed=0)
+    envs.reset(seed=seed)
     envs.step(action)
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -95,7 +109,7 @@ def lean_vector(steps: int, workers: int, infos: bool, copy: bool) -> float:
     return rate
 
 
-def _bare_worker(index: int, envs: int, shm_name: str, pipe) -> None:
+def _bare_worker(index: int, envs: int, shm_name: str, pipe, seed: int) -> None:
     """Step env ``index`` whenever the main process says so, write its frames into the shared block, answer a byte."""
     from multiprocessing.shared_memory import SharedMemory
 
@@ -103,7 +117,7 @@ def _bare_worker(index: int, envs: int, shm_name: str, pipe) -> None:
     action = env.unwrapped.null_action()
     block = SharedMemory(name=shm_name)
     frames = np.ndarray((envs, *env.observation_space["frames"].shape), np.uint16, buffer=block.buf)
-    env.reset(seed=index)
+    env.reset(seed=seed + index)
     while pipe.recv():
         obs, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
@@ -114,7 +128,7 @@ def _bare_worker(index: int, envs: int, shm_name: str, pipe) -> None:
     block.close()
 
 
-def bare_workers(steps: int, workers: int) -> float:
+def bare_workers(steps: int, workers: int, seed: int) -> float:
     """Steps/s (all workers) of the least a process-based vector env can do per step: each worker steps its env on a
     one-byte message, writes the frames into one shared-memory block and answers a byte (no action, no observation
     or info sent, no autoreset bookkeeping in the main process)."""
@@ -126,7 +140,8 @@ def bare_workers(steps: int, workers: int) -> float:
     pipes, processes = [], []
     for index in range(workers):
         ours, theirs = context.Pipe()
-        process = context.Process(target=_bare_worker, args=(index, workers, block.name, theirs), daemon=True)
+        process = context.Process(target=_bare_worker, args=(index, workers, block.name, theirs, seed),
+                                  daemon=True)
         process.start()
         pipes.append(ours)
         processes.append(process)
@@ -150,7 +165,7 @@ def bare_workers(steps: int, workers: int) -> float:
     return rate
 
 
-def with_pipeline(steps: int, prefetch: bool) -> float:
+def with_pipeline(steps: int, prefetch: bool, seed: int) -> float:
     """Steps/s of one env driven by the scenario's own classical pipeline (OpenCV held to one thread)."""
     import cv2
 
@@ -159,7 +174,7 @@ def with_pipeline(steps: int, prefetch: bool) -> float:
     cv2.setNumThreads(1)
     env = gym.make(ENV_ID, prefetch=prefetch)
     pipeline = Pipeline.for_scenario(env.unwrapped.scenario)
-    obs, _ = env.reset(seed=0)
+    obs, _ = env.reset(seed=seed)
     pipeline.reset(env.unwrapped.sensor_info)
     obs, *_ = env.step(pipeline(obs))
     t0 = time.perf_counter()
@@ -173,9 +188,9 @@ def with_pipeline(steps: int, prefetch: bool) -> float:
     return rate
 
 
-def floor_rate(shape: tuple[int, int], steps: int) -> float:
+def floor_rate(shape: tuple[int, int], steps: int, seed: int = 0) -> float:
     """Frames/s of the noise floor: one float32 standard normal per pixel."""
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     out = np.empty(shape, np.float32)
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -190,16 +205,63 @@ def parallel_floor(shape: tuple[int, int], steps: int) -> float:
         return float(sum(pool.starmap(floor_rate, [(shape, steps)] * 2)))
 
 
-def profile(steps: int) -> str:
-    """The top of a cProfile of ``steps`` single-env steps, by cumulative and by own time."""
-    env = gym.make(ENV_ID)
+def random_pointing_deg(rng: np.random.Generator) -> tuple[float, float, float]:
+    """A boresight uniform on the sky and a uniform roll about it: right ascension, declination, roll (deg)."""
+    return 360.0 * rng.random(), math.degrees(math.asin(2.0 * rng.random() - 1.0)), 360.0 * rng.random()
+
+
+def frame_env(seed: int, steps: int) -> gym.Env:
+    """The 1024 x 1024 env of the ``env.step`` figure, pointed at a direction drawn from ``seed``
+    (:func:`random_pointing_deg`), long enough for ``steps`` steps after its reset."""
+    ra, dec, roll = random_pointing_deg(np.random.default_rng(seed))
+    focal_px = 58.5e-3 / 12e-6  # paper 002: f = 58.5 mm, 12 um pixels
+    rate = math.degrees(FRAME_TRAIL_PX / (focal_px * FRAME_EXPOSURE_S)) / math.sqrt(2.0)  # deg/s about X and Y
+    overrides = {"mag_limit": FRAME_MAG_LIMIT, "exposure_s": FRAME_EXPOSURE_S, "motion.rate_dps": [rate, rate, 0.0],
+                 "motion.initial_ra_deg": ra, "motion.initial_dec_deg": dec, "motion.initial_roll_deg": roll,
+                 "duration_s": (steps + 3) / 10.0}  # paper 002 runs at 10 Hz
+    return gym.make("StarEnv/Scenario-v0", scenario=FRAME_SCENARIO, overrides=overrides)
+
+
+def _scored_step(env: gym.Env, action: dict, info: dict) -> dict:
+    """One step sending the true attitude of the last observation (scored as a pipeline's would be); its info."""
+    action["attitude"] = info["truth"]["attitude"]
+    return env.step(action)[4]
+
+
+def frame_step(steps: int, seed: int) -> tuple[float, float, int]:
+    """Median time (s) of a 1024 x 1024 ``env.step`` and of one floor draw of its frame, each step timed beside one
+    draw; the stars on the first frame."""
+    env = frame_env(seed, steps)
     action = env.unwrapped.null_action()
-    env.reset(seed=0)
-    env.step(action)
+    action["attitude_valid"] = np.array(1, np.int8)
+    _, info = env.reset(seed=seed)
+    stars = len(info["truth"]["stars"][0]["catalog_id"])
+    rng = np.random.default_rng(seed)
+    noise = np.empty(env.observation_space["frames"].shape[1:], np.float32)
+    info = _scored_step(env, action, info)
+    step_times, floor_times = [], []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        rng.standard_normal(dtype=np.float32, out=noise)
+        t1 = time.perf_counter()
+        info = _scored_step(env, action, info)
+        step_times.append(time.perf_counter() - t1)
+        floor_times.append(t1 - t0)
+    env.close()
+    return float(np.median(step_times)), float(np.median(floor_times)), stars
+
+
+def profile(steps: int, seed: int) -> str:
+    """The top of a cProfile of ``steps`` steps of the 1024 x 1024 env, by cumulative and by own time."""
+    env = frame_env(seed, steps + 1)
+    action = env.unwrapped.null_action()
+    action["attitude_valid"] = np.array(1, np.int8)
+    _, info = env.reset(seed=seed)
+    info = _scored_step(env, action, info)
     profiler = cProfile.Profile()
     profiler.enable()
     for _ in range(steps):
-        env.step(action)
+        info = _scored_step(env, action, info)
     profiler.disable()
     text = io.StringIO()
     stats = pstats.Stats(profiler, stream=text)
@@ -208,52 +270,89 @@ def profile(steps: int) -> str:
     return "\n".join(line for line in text.getvalue().splitlines() if line.strip() and "Ordered by" not in line)
 
 
+PARTS = ("step", "single", "vector", "pipeline", "profile")
+
+
+def spread(values: list[float]) -> str:
+    """Median of the rounds' values, and the lowest and highest."""
+    return f"{np.median(values):.2f} [{min(values):.2f}-{max(values):.2f}]"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seed", type=int, default=9173, help="seeds every env and draws the 1024^2 pointings")
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--profile-steps", type=int, default=300)
+    parser.add_argument("--profile-steps", type=int, default=100)
+    parser.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated, of {', '.join(PARTS)}")
     args = parser.parse_args()
+    parts = set(args.parts.split(","))
+    if not parts <= set(PARTS) or args.repeats < 1:
+        parser.error(f"--parts must name some of {', '.join(PARTS)}; --repeats must be >= 1")
+    seed = args.seed
     shape = gym.make(ENV_ID).observation_space["frames"].shape[1:]
     load_before = os.getloadavg()[0]
-    set_up = vector(0, 2, True)[2]  # the workers' CPU time to start, reset and take one step, per env
+    # the workers' CPU time to start, reset and take one step, per env
+    set_up = vector(0, 2, True, seed)[2] if "vector" in parts else 0.0
     rounds = []
-    for _ in range(args.repeats):
-        one, one_cpu = single(args.steps)
-        shared, main_cpu, worker_cpu = vector(args.steps, 2, True)
-        rounds.append({
-            "floor": floor_rate(shape, args.steps), "floor x2": parallel_floor(shape, args.steps),
-            "single": one, "single cpu": one_cpu, "shared": shared, "main cpu": main_cpu,
-            "worker cpu": worker_cpu - set_up / (2 * args.steps),
-            "pickled": vector(args.steps, 2, False)[0], "prefetch": vector(args.steps, 2, True, prefetch=True)[0],
-            "bare": bare_workers(args.steps, 2),
-            "lean": lean_vector(args.steps, 2, infos=True, copy=True),
-            "lean views": lean_vector(args.steps, 2, infos=False, copy=False),
-            "pipeline": with_pipeline(args.steps // 3, False),
-            "pipeline prefetch": with_pipeline(args.steps // 3, True),
-        })
-    median = {k: float(np.median([r[k] for r in rounds])) for k in rounds[0]}
-    ratio = {k: float(np.median([r[k] / r["single"] for r in rounds])) for k in rounds[0]}
-    ceiling = float(np.median([r["floor x2"] / r["floor"] for r in rounds]))
-    # Two cores run the workers' and the main process's CPU time per env step: no schedule beats 2 / their sum.
-    cpu_bound = float(np.median([2.0 / (r["main cpu"] + r["worker cpu"]) / r["single"] for r in rounds]))
+    for k in range(args.repeats):
+        found: dict[str, float] = {}
+        if "step" in parts:
+            step_s, floor_s, stars = frame_step(args.steps, seed + k)
+            found |= {"frame step": step_s, "frame floor": floor_s, "frame stars": stars}
+        if parts & {"single", "vector", "pipeline"}:
+            one, one_cpu = single(args.steps, seed)
+            found |= {"floor": floor_rate(shape, args.steps, seed), "single": one, "single cpu": one_cpu}
+        if "vector" in parts:
+            shared, main_cpu, worker_cpu = vector(args.steps, 2, True, seed)
+            found |= {
+                "floor x2": parallel_floor(shape, args.steps), "shared": shared, "main cpu": main_cpu,
+                "worker cpu": worker_cpu - set_up / (2 * args.steps),
+                "pickled": vector(args.steps, 2, False, seed)[0],
+                "prefetch": vector(args.steps, 2, True, seed, prefetch=True)[0],
+                "bare": bare_workers(args.steps, 2, seed),
+                "lean": lean_vector(args.steps, 2, infos=True, copy=True, seed=seed),
+                "lean views": lean_vector(args.steps, 2, infos=False, copy=False, seed=seed),
+            }
+        if "pipeline" in parts:
+            found |= {"pipeline": with_pipeline(args.steps // 3, False, seed),
+                      "pipeline prefetch": with_pipeline(args.steps // 3, True, seed)}
+        rounds.append(found)
     print(f"load average (1 min): {load_before:.2f} before, {os.getloadavg()[0]:.2f} after, on {os.cpu_count()} cores; "
-          f"medians of {args.repeats} rounds of {args.steps} steps")
-    print(f"noise floor ({shape[0]}x{shape[1]} float32 normals): {median['floor']:8.1f} frames/s")
-    print(f"single env, do-nothing action:    {median['single']:8.1f} steps/s   (goal >= 300) = "
-          f"{ratio['floor']:.2f} x the floor's time")
-    print(f"noise floor in 2 processes at once: {ceiling:.2f} x one process (the ceiling of a 2-worker speed-up here)")
-    for key, label in (("shared", "Gymnasium async, shared memory"), ("pickled", "Gymnasium async, pickled"),
-                       ("prefetch", "Gymnasium async, + prefetch"), ("bare", "bare workers (the floor)"),
-                       ("lean", "SharedMemoryVectorEnv"), ("lean views", "SharedMemoryVectorEnv, no infos, views")):
-        print(f"vector env, 2 workers, {label:<38} {median[key]:6.1f} steps/s = {ratio[key]:.2f} x single "
-              f"(goal >= 1.8; {ratio[key] / ceiling:.2f} of the ceiling)")
-    print(f"CPU time per env step: single env {median['single cpu'] * 1e3:.2f} ms; in Gymnasium's async vector env "
-          f"worker {median['worker cpu'] * 1e3:.2f} ms + main process {median['main cpu'] * 1e3:.2f} ms: on 2 cores "
-          f"at most {cpu_bound:.2f} x single")
-    print(f"single env + the scenario's pipeline: {median['pipeline']:8.1f} steps/s; with prefetch "
-          f"{median['pipeline prefetch']:.1f} steps/s = {ratio['pipeline prefetch'] / ratio['pipeline']:.2f} x")
-    print(f"\nprofile of {args.profile_steps} single-env steps:\n{profile(args.profile_steps)}")
+          f"seed {seed}; medians of {args.repeats} rounds of {args.steps} steps [lowest-highest round]")
+    if "step" in parts:
+        steps_ms = [r["frame step"] * 1e3 for r in rounds]
+        stars = ", ".join(str(int(r["frame stars"])) for r in rounds)
+        print(f"env.step, 1024x1024, {stars} stars (a pointing a round), noise on, scored: {spread(steps_ms)} ms = "
+              f"{spread([r['frame step'] / r['frame floor'] for r in rounds])} x the floor "
+              f"({spread([r['frame floor'] * 1e3 for r in rounds])} ms; goal <= 1.5)")
+    if not parts & {"single", "vector", "pipeline"}:
+        rounds = []
+    if rounds:
+        print(f"noise floor ({shape[0]}x{shape[1]} float32 normals): {spread([r['floor'] for r in rounds])} frames/s")
+        print(f"single env, do-nothing action: {spread([r['single'] for r in rounds])} steps/s (goal >= 300) = "
+              f"{spread([r['floor'] / r['single'] for r in rounds])} x the floor's time")
+    if rounds and "vector" in parts:
+        ceiling = [r["floor x2"] / r["floor"] for r in rounds]
+        print(f"noise floor in 2 processes at once: {spread(ceiling)} x one process (the ceiling of a 2-worker "
+              "speed-up here)")
+        for key, label in (("shared", "Gymnasium async, shared memory (its default)"),
+                           ("pickled", "Gymnasium async, pickled"), ("prefetch", "Gymnasium async, + prefetch"),
+                           ("bare", "bare workers (the floor)"), ("lean", "SharedMemoryVectorEnv"),
+                           ("lean views", "SharedMemoryVectorEnv, no infos, views")):
+            print(f"vector env, 2 workers, {label:<46} {np.median([r[key] for r in rounds]):6.1f} steps/s = "
+                  f"{spread([r[key] / r['single'] for r in rounds])} x single (goal >= 1.8)")
+        # Two cores run the workers' and the main process's CPU time per env step: no schedule beats 2 / their sum.
+        cpu_bound = [2.0 / (r["main cpu"] + r["worker cpu"]) / r["single"] for r in rounds]
+        print(f"CPU time per env step: single env {np.median([r['single cpu'] for r in rounds]) * 1e3:.2f} ms; in "
+              f"Gymnasium's async vector env worker {np.median([r['worker cpu'] for r in rounds]) * 1e3:.2f} ms + "
+              f"main process {np.median([r['main cpu'] for r in rounds]) * 1e3:.2f} ms: on 2 cores at most "
+              f"{spread(cpu_bound)} x single")
+    if rounds and "pipeline" in parts:
+        print(f"single env + the scenario's pipeline: {spread([r['pipeline'] for r in rounds])} steps/s; with "
+              f"prefetch {spread([r['pipeline prefetch'] / r['pipeline'] for r in rounds])} x")
+    if "profile" in parts:
+        print(f"\nprofile of {args.profile_steps} steps of the 1024x1024 env:\n{profile(args.profile_steps, seed)}")
 
 
 if __name__ == "__main__":

@@ -175,20 +175,21 @@ def run(frames: int, seed_offset: int, names: tuple[str, ...] = AGENTS, network_
 
 
 def paper_size_inference_ms(repeats: int = 5) -> float:
-    """CPU time (median ms) of one forward pass of the paper-size network (4331 classes, 1024^2 frame resized to
-    256^2, D 64, depth 8, 6 heads; untrained weights, the same arithmetic)."""
+    """CPU time (median ms) of the preprocessing and one forward pass of the paper-size network (4331 classes,
+    1024^2 frame resized to 256^2, D 64, depth 8, 6 heads; untrained weights, the same arithmetic)."""
     import torch
 
     from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
+    from starenv.datasets.preprocess import network_input
 
     net = MainStarNet(MainStarConfig()).eval()
-    x = torch.full((1, 1024, 1024), 100, dtype=torch.int32)
+    frame = np.random.default_rng(0).integers(90, 110, (1024, 1024)).astype(np.uint16)
     out = []
     with torch.no_grad():
-        net(x)
+        net(torch.from_numpy(network_input(frame, 256))[None])
         for _ in range(repeats):
             t = time.perf_counter()
-            net(x)
+            net(torch.from_numpy(network_input(frame, 256))[None])
             out.append(time.perf_counter() - t)
     return 1e3 * float(np.median(out))
 

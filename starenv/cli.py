@@ -1,13 +1,16 @@
-"""Command line: ``starenv scenarios``, ``starenv render SCENARIO``, ``starenv run SCENARIO``,
-``starenv bench BENCH``, ``starenv view FILE``, ``starenv export FILE``, ``starenv recover FILE.mcap.partial``,
-``starenv dataset SPEC`` and ``starenv train`` (torch, imported only when a command builds a learned agent or
-trains one)."""
+"""Command line: ``starenv scenarios [--show NAME]``, ``starenv new`` (a scenario from a sensor's datasheet),
+``starenv render SCENARIO``, ``starenv run SCENARIO``,
+``starenv bench BENCH``, ``starenv solve FILE...``, ``starenv calibrate FILE...`` (a camera's twin from its frames),
+``starenv compare FILE...`` (the frames beside the twin), ``starenv view FILE``, ``starenv export FILE``,
+``starenv recover FILE.mcap.partial``, ``starenv dataset SPEC`` and ``starenv train`` (torch, imported only when a
+command builds a learned agent or trains one)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -63,10 +66,52 @@ def printable(text, limit: int = 1000) -> str:
 
 
 def cmd_scenarios(args) -> int:
+    if args.show is not None:  # the file's text, comments included, to start a scenario from
+        names = scenario_mod.bundled_names()
+        if args.show not in names:
+            raise ValueError(f"--show {args.show!r}: not a bundled scenario ({', '.join(names)})")
+        sys.stdout.write((scenario_mod.SCENARIO_DIR / f"{args.show}.toml").read_text(encoding="utf-8"))
+        return 0
     for name in scenario_mod.bundled_names():
         sc = scenario_mod.load(name)
         print(f"{name:24s} {sc.description}")
     return 0
+
+
+def cmd_new(args) -> int:
+    from starenv.config import parse_toml
+    from starenv.files import atomic_file
+    from starenv.sensor_sheet import SensorSheet, scenario_text
+
+    given = {field: value for field, value in vars(args).items() if field in NEW_FIELDS and value is not None}
+    if args.resolution is not None:
+        given["width"], given["height"] = args.resolution
+    missing = [flag for flag, field in (("--resolution", "width"), ("--pixel-um", "pixel_pitch_um"),
+                                        ("--aperture-mm", "aperture_mm"), ("--exposure-ms", "exposure_ms"),
+                                        ("--rate-hz", "frame_rate_hz")) if field not in given]
+    if missing:
+        raise ValueError(f"new: give {', '.join(missing)} (from the sensor's datasheet)")
+    text = scenario_text(SensorSheet(**given), frozenset(given))
+    try:
+        scenario_mod.load(parse_toml(text, "<new>", scenario_mod.ScenarioError))
+    except scenario_mod.ScenarioError as exc:  # values each in range whose scenario is not (e.g. the f-number)
+        raise ValueError(f"new: these datasheet values give no valid scenario: {exc}") from exc
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    out = Path(args.out)
+    if out.exists() and not out.is_symlink() and not args.force:
+        raise FileExistsError(f"--out {out} exists; --force replaces it")
+    with atomic_file(out, "w", encoding="utf-8", replace=args.force) as f:  # refuses a symbolic link, even forced
+        f.write(text)
+    print(printable(f"wrote {out}: run it with starenv run {out}"))
+    return 0
+
+
+# ``starenv new`` options -> SensorSheet fields (``--resolution W H`` gives width and height)
+NEW_FIELDS = ("fov_deg", "focal_length_mm", "pixel_pitch_um", "aperture_mm", "exposure_ms", "frame_rate_hz",
+              "read_noise_e", "dark_current_e_per_s", "full_well_e", "gain_e_per_dn", "quantum_efficiency",
+              "transmission", "adc_bits", "psf_sigma_px", "snr", "sky_mag_per_arcsec2", "duration_s", "name")
 
 
 def _bounded(name: str, value: int | None, low: int, high: int, why: str) -> None:
@@ -251,28 +296,35 @@ def _print_datasheet(sc, records: list[dict]) -> None:
         print(f"    {label:12s}{split['bias']:12.4g}{split['nea']:12.4g}{split['total_3s']:15.4g}")
 
 
+def _finished(recording: Path, tmp: str) -> tuple[Path, int | None]:
+    """A finished MCAP to read ``recording`` from: the file itself (and None), or, for an unfinished one (a killed
+    run's ``.partial``), its complete steps recovered into the folder ``tmp`` (and their count)."""
+    from starenv.record.mcap import is_finished, recover
+
+    if not recording.name.endswith(".partial") and is_finished(recording):
+        return recording, None
+    finished = Path(tmp) / recording.name.removesuffix(".partial")
+    return finished, recover(recording, finished)
+
+
 def cmd_view(args) -> int:
-    import os
     import shutil
     import subprocess
     import tempfile
 
-    from starenv.record.mcap import is_finished, read_metadata, recover, reproduce_command, run_info
+    from starenv.record.mcap import read_metadata, reproduce_command, run_info
     from starenv.record.rerun import analytics_off, mcap_to_rrd
 
     analytics_off()
-    mcap_path = Path(args.recording)
-    partial = mcap_path.name.endswith(".partial") or not is_finished(mcap_path)
-    stem = mcap_path.with_name(mcap_path.name.removesuffix(".partial"))
+    recording = Path(args.recording)
+    stem = recording.with_name(recording.name.removesuffix(".partial"))
     rrd = Path(args.rrd) if args.rrd else stem.with_suffix(".rrd")
     with tempfile.TemporaryDirectory() as tmp:
-        if partial:  # an unfinished recording (a killed run): review what reached the file
-            finished = Path(tmp) / stem.name
-            steps = recover(mcap_path, finished)
-            print(f"{mcap_path} is unfinished: reviewing its {steps} complete steps, up to its last complete chunk "
-                  f"(starenv recover {mcap_path} writes them as a finished MCAP)")
-            mcap_path = finished
-        info = run_info(read_metadata(mcap_path), mcap_path)
+        mcap_path, steps = _finished(recording, tmp)
+        if steps is not None:  # an unfinished recording (a killed run): review what reached the file
+            print(printable(f"{recording} is unfinished: reviewing its {steps} complete steps, up to its last "
+                            f"complete chunk (starenv recover {recording} writes them as a finished MCAP)"))
+        info = run_info(read_metadata(mcap_path), recording)  # errors name the user's file, not the copy
         with _progress(info.get("steps"), "building the review", args.quiet) as bar:
             mcap_to_rrd(mcap_path, rrd, on_step=bar.update)
     # the file's text made printable; the reproduce command rebuilt from its checked numbers and agent names, never
@@ -294,11 +346,42 @@ def cmd_view(args) -> int:
     return 0
 
 
+def _export_aem(args) -> int:
+    """``export --format aem``: the run's estimated attitude to ``--out``, its truth beside it
+    (``starenv.record.aem``)."""
+    import tempfile
+
+    from starenv.files import atomic_file
+    from starenv.record.aem import recording_aems, truth_path
+
+    if not args.out:
+        raise ValueError("export --format aem: name the estimate's file with --out FILE.aem (FILE.xml for XML)")
+    out = Path(args.out)
+    outputs = (out, truth_path(out))
+    for path in outputs:
+        if path.exists() and not path.is_symlink() and not args.force:
+            raise FileExistsError(f"{path} exists; --force replaces it")
+    with tempfile.TemporaryDirectory() as tmp:  # an unfinished recording: its complete steps
+        estimate, truth, estimated, steps = recording_aems(_finished(Path(args.recording), tmp)[0],
+                                                           "xml" if out.suffix.lower() == ".xml" else "kvn")
+    for path, text in zip(outputs, (estimate, truth), strict=True):
+        with atomic_file(path, "w", encoding="utf-8", replace=args.force) as f:  # refuses a symbolic link
+            f.write(text)
+    print(printable(f"wrote {outputs[0]} (the estimated attitude of {estimated} of {steps} steps, CCSDS AEM) and "
+                    f"{outputs[1]} (the truth at every step)"))
+    return 0
+
+
 def cmd_export(args) -> int:
+    import tempfile
+
     from starenv.files import atomic_file
     from starenv.record.mcap import read_metadata, reproduce_command, run_info
 
-    info = run_info(read_metadata(args.recording), args.recording)
+    if args.format == "aem":
+        return _export_aem(args)
+    with tempfile.TemporaryDirectory() as tmp:  # an unfinished recording: the metadata of its complete steps
+        info = run_info(read_metadata(_finished(Path(args.recording), tmp)[0]), args.recording)
     out = Path(args.scenario)
     if out.exists() and not out.is_symlink() and not args.force:
         raise FileExistsError(f"--scenario {out} exists; --force replaces it")
@@ -360,6 +443,141 @@ def cmd_dataset(args) -> int:
     return 0
 
 
+def _solved_field(solution) -> str:
+    """The field a solved frame used (when the search found it) and the one fitted to its stars, for the log line."""
+    found = f"field found {solution.fov_deg:.4f} deg, " if solution.fov_searched else ""
+    if solution.fov_fitted_deg is None:
+        return found
+    return found + f"fitted {solution.fov_fitted_deg:.4f} +- {solution.fov_fitted_sigma_deg:.4f} deg, "
+
+
+def cmd_solve(args) -> int:
+    from starenv.agents.pipeline import Pipeline
+    from starenv.files import atomic_file
+    from starenv.real import FrameSolver, camera_from_fov, read_frame
+    from starenv.real.solve import FOV_TOLERANCE, LOST_IN_SPACE, write_wcs_fits
+
+    camera_file = None
+    if args.camera is not None:
+        camera_file = scenario_mod.load_camera(args.camera)
+    elif not 0.0 < args.fov < 180.0:
+        raise ValueError(f"--fov {args.fov}: expected the field across the image columns in degrees, in (0, 180)")
+    fov_tolerance = FOV_TOLERANCE if args.fov_tolerance is None else args.fov_tolerance
+    if not 0.0 <= fov_tolerance < 0.5:
+        raise ValueError(f"--fov-tolerance {fov_tolerance}: expected a fraction in [0, 0.5)")
+    if args.json and Path(args.json).exists() and not args.force:
+        raise FileExistsError(f"--json {args.json} exists; --force replaces it")
+    spec = scenario_mod.PipelineSpec(LOST_IN_SPACE)
+    if args.pipeline is not None:
+        spec = spec.replaced_by(scenario_mod.load_pipeline(args.pipeline))
+    spec = spec.replaced_by(scenario_mod.PipelineSpec(_agents(args.agent)))
+    Pipeline.from_spec(spec, tuple(args.trust))  # a bad agent or option fails here, before any file
+    solvers: dict = {}
+    results, failed = [], 0
+    for name in args.files:
+        try:
+            image = read_frame(name)
+            if camera_file is not None:
+                camera, calibrated = camera_file.camera, camera_file.spot_calibrated
+                if image.shape != (camera.height, camera.width):
+                    raise ValueError(f"{name}: {image.shape[1]} x {image.shape[0]} px, but the camera in "
+                                     f"{args.camera} is {camera.width} x {camera.height}")
+            else:
+                camera, calibrated = camera_from_fov(args.fov, image.shape), False
+            if camera not in solvers:
+                solvers[camera] = FrameSolver(camera, Pipeline.from_spec(spec, tuple(args.trust)),
+                                              spot_calibrated=calibrated, epoch=args.epoch,
+                                              fov_tolerance=fov_tolerance)
+            solution = solvers[camera].solve(image, file=str(name))
+            if solution.solved and args.wcs_fits:
+                write_wcs_fits(image, solution, camera, Path(args.wcs_fits) / (Path(name).stem + ".fits"),
+                               replace=args.force)
+        except (ValueError, OSError) as exc:  # this file's problem: one line, then the next file
+            print(f"starenv solve: error: {printable(exc)}", file=sys.stderr)
+            results.append({"file": str(name), "error": str(exc)})
+            failed += 1
+            continue
+        results.append(solution.to_dict())
+        spot = f"spot {solution.spot_sigma_px:.2f} px{' (measured)' if solution.spot_measured else ''}"
+        if solution.solved:
+            print(printable(f"{name}: solved, RA {solution.ra_deg:.5f} Dec {solution.dec_deg:+.5f} roll "
+                            f"{solution.roll_deg:.3f} deg, {solution.stars_identified}/{solution.stars_detected} stars "
+                            f"identified, residual rms {solution.residual_rms_px:.3f} px, {spot}, "
+                            f"{_solved_field(solution)}{solution.time_ms:.1f} ms"))
+        else:
+            print(printable(f"{name}: not solved ({solution.stars_identified} of {solution.stars_detected} stars "
+                            f"identified), {spot}, {solution.time_ms:.1f} ms"))
+    solved = sum(bool(r.get("solved")) for r in results)
+    print(f"{solved}/{len(args.files)} frames solved" + (f", {failed} unreadable" if failed else ""))
+    if args.json:
+        with atomic_file(args.json, "w", encoding="utf-8", replace=args.force) as f:
+            json.dump(results, f, indent=1)
+        print(f"wrote {args.json}")
+    return 2 if failed else 0
+
+
+def _refuse_existing(paths: list[Path], force: bool) -> None:
+    """Refuse to replace an existing output without ``--force``."""
+    for path in paths:
+        if path.exists() and not force:
+            raise FileExistsError(f"{path} exists; --force replaces it")
+
+
+def cmd_calibrate(args) -> int:
+    from starenv.files import atomic_file
+    from starenv.real.calibrate import calibrate_files, camera_toml, report_markdown, residual_table, scenario_toml
+
+    if not 0.0 < args.fov < 180.0:
+        raise ValueError(f"--fov {args.fov}: expected the field across the image columns in degrees, in (0, 180)")
+    out = Path(args.out)
+    twin = Path(args.scenario) if args.scenario else out.with_name(out.stem + "_scenario.toml")
+    report = Path(args.report) if args.report else out.with_suffix(".md")
+    _refuse_existing([out, twin, report], args.force)
+    models = ("pinhole", "brown", "legendre")
+    cal, solutions = calibrate_files(args.files, args.fov, epoch=args.epoch, exposure_s=args.exposure_s,
+                                     choose=args.distortion, legendre_order=args.legendre_order,
+                                     gain_e_per_dn=args.gain, bias_dn=args.bias_dn, models=models)
+    for sol in solutions:
+        state = f"{sol.stars_identified} stars identified" if sol.solved else "not solved, left out"
+        print(printable(f"{sol.file}: {state}"))
+    print(residual_table(cal))
+    with atomic_file(out, "w", encoding="utf-8") as f:
+        f.write(camera_toml(cal, args.pixel_pitch_um, args.f_number))
+    with atomic_file(twin, "w", encoding="utf-8") as f:
+        f.write(scenario_toml(cal, args.pixel_pitch_um, args.f_number, name=out.stem))
+    with atomic_file(report, "w", encoding="utf-8") as f:
+        f.write(report_markdown(cal))
+    print(f"twin ({cal.chosen} distortion, spot {cal.spot.mean_px:.3f} px, zero point {cal.zero_point.zp_twin_mag:.3f} "
+          f"mag for 1 DN/s, gain {cal.noise.gain_e_per_dn:.3g} e-/DN{'' if cal.noise.gain_measured else ' assumed'})")
+    print(f"wrote {out} (camera), {twin} (scenario), {report} (report)")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from starenv.files import atomic_file
+    from starenv.real.compare import compare_files, markdown, plots, summary
+
+    out = Path(args.out)
+    table = out / "compare.md"
+    _refuse_existing([table], args.force)
+    comparisons, solutions = compare_files(args.files, args.camera, args.exposure_s, args.epoch, args.seed)
+    for sol in solutions:
+        if not sol.solved:
+            print(printable(f"{sol.file}: not solved with the twin's camera, left out"))
+    text = markdown(comparisons, summary(comparisons))
+    try:
+        figures = plots(comparisons, out)
+    except ModuleNotFoundError as exc:  # matplotlib: the report extra
+        figures = []
+        print(f"no plots ({exc.name} missing: pip install 'starenv[report]')")
+    text += "".join(f"\n![{Path(name).stem}]({name})\n" for name in figures)
+    with atomic_file(table, "w", encoding="utf-8") as f:
+        f.write(text)
+    print(text.split("\n\n| frame")[0])
+    print(f"wrote {table}" + (f" and {len(figures)} figures in {out}" if figures else ""))
+    return 0
+
+
 # Errors that an input (a file, an option, a folder) causes: one line, exit status 2.
 INPUT_ERRORS = (scenario_mod.ScenarioError, ValueError, OSError, ModuleNotFoundError, RecursionError, MemoryError)
 
@@ -379,7 +597,30 @@ def _fail(prog: str, exc: BaseException, debug: bool) -> int:
     return 1
 
 
+def _as_typed(exc: BaseException, pairs: list[str]) -> BaseException:
+    """``exc`` naming the ``--set KEY=VALUE`` it lies in, as typed, where a scenario error names an override."""
+    key = getattr(exc, "override", None)
+    for pair in pairs if key is not None else ():
+        if pair.partition("=")[0] == key:
+            return type(exc)(f"--set {pair}: {exc.detail}")
+    return exc
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The command line; its exit status.  A reader that stops reading (``starenv scenarios | head -1``) ends it
+    quietly with status 0."""
+    try:
+        status = _main(argv)
+        sys.stdout.flush()  # here, not at interpreter exit, so that a closed pipe is caught below
+        return status
+    except BrokenPipeError:
+        # Python's documented handling: the rest of the output goes to devnull, so the final flush cannot fail again
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
+
+
+def _main(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]
@@ -388,6 +629,8 @@ def main(argv: list[str] | None = None) -> int:
 
         try:
             return train_main(argv[1:])
+        except BrokenPipeError:
+            raise
         except Exception as exc:  # noqa: BLE001  (one line; --debug shows the traceback)
             return _fail("starenv train", exc, debug)
     import starenv
@@ -396,7 +639,38 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--version", action="version", version=f"starenv {starenv.__version__}")
     parser.add_argument("--debug", action="store_true", help="on an error, print its traceback too (any position)")
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("scenarios", help="list the bundled scenarios").set_defaults(fn=cmd_scenarios)
+    p = sub.add_parser("scenarios", help="list the bundled scenarios (--show NAME prints one's file)")
+    p.add_argument("--show", default=None, metavar="NAME",
+                   help="print the bundled scenario NAME's TOML, comments included, to start your own from")
+    p.set_defaults(fn=cmd_scenarios)
+    p = sub.add_parser("new", help="write a documented scenario from a star sensor's datasheet values, every derived "
+                                   "figure (IFOV, photon flux, limiting magnitude, ...) in a comment")
+    optics = p.add_mutually_exclusive_group(required=True)
+    optics.add_argument("--fov", type=float, dest="fov_deg", metavar="DEG",
+                        help="full field of view across the width, edge to edge (deg)")
+    optics.add_argument("--focal-mm", type=float, dest="focal_length_mm", metavar="F", help="focal length (mm)")
+    p.add_argument("--pixel-um", type=float, dest="pixel_pitch_um", metavar="P", help="pixel pitch (um)")
+    p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), help="pixels across and down")
+    p.add_argument("--aperture-mm", type=float, metavar="D", help="entrance pupil diameter (mm)")
+    p.add_argument("--exposure-ms", type=float, metavar="T", help="exposure time (ms)")
+    p.add_argument("--rate-hz", type=float, dest="frame_rate_hz", metavar="R", help="frame rate (Hz)")
+    p.add_argument("--read-noise-e", type=float, metavar="E", help="read noise (e- RMS)")
+    p.add_argument("--dark-current-e-s", type=float, dest="dark_current_e_per_s", metavar="E",
+                   help="dark current (e-/px/s)")
+    p.add_argument("--full-well-e", type=float, metavar="E", help="full-well capacity (e-)")
+    p.add_argument("--gain-e-dn", type=float, dest="gain_e_per_dn", metavar="G", help="conversion gain (e-/DN)")
+    p.add_argument("--qe", type=float, dest="quantum_efficiency", metavar="QE", help="quantum efficiency (0-1)")
+    p.add_argument("--transmission", type=float, metavar="T", help="optics transmission (0-1; default 0.8)")
+    p.add_argument("--adc-bits", type=int, metavar="N", help="ADC bits (default 12)")
+    p.add_argument("--psf-sigma-px", type=float, metavar="S", help="spot sigma (px; default 1)")
+    p.add_argument("--snr", type=float, metavar="K", help="SNR the limiting magnitude is stated for (default 5)")
+    p.add_argument("--sky-mag", type=float, dest="sky_mag_per_arcsec2", metavar="M",
+                   help="sky background (mag/arcsec^2; default 22)")
+    p.add_argument("--duration-s", type=float, metavar="S", help="episode length (s; default 10)")
+    p.add_argument("--name", default=None, help="scenario name (default my_sensor)")
+    p.add_argument("--out", default=None, metavar="FILE.toml", help="write here (default: print it)")
+    p.add_argument("--force", action="store_true", help="replace an existing --out file")
+    p.set_defaults(fn=cmd_new)
     p = sub.add_parser("render", help="render one frame of a scenario: a PNG with truth, 16-bit FITS or npz")
     p.add_argument("scenario", help="bundled scenario name or path to a .toml file")
     p.add_argument("--frame", type=int, default=0, help="frame index (default 0)")
@@ -429,7 +703,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("recording", help="an MCAP file written by starenv run --record")
     p.add_argument("--scenario", default="scenario.toml", metavar="FILE.toml",
                    help="where to write the scenario (default scenario.toml, the name the reproduce command uses)")
-    p.add_argument("--force", action="store_true", help="replace an existing --scenario file")
+    p.add_argument("--force", action="store_true", help="replace an existing output file")
+    p.add_argument("--format", choices=("scenario", "aem"), default="scenario",
+                   help="scenario: the scenario TOML (--scenario); aem: the estimated attitude as a CCSDS AEM to "
+                        "--out (KVN, or XML for a .xml name) and the truth beside it as OUT.truth.aem "
+                        "(the 'aem' extra: ccsds-ndm)")
+    p.add_argument("--out", default=None, metavar="FILE.aem", help="--format aem: the estimate's file")
     p.set_defaults(fn=cmd_export)
     p = sub.add_parser("view", help="review an MCAP recording in Rerun (opens the viewer when a display exists)")
     p.add_argument("recording", help="an MCAP file written by starenv run --record (or the FILE.mcap.partial of a "
@@ -466,12 +745,84 @@ def main(argv: list[str] | None = None) -> int:
                    help="build on a Ray cluster at ADDRESS (no ADDRESS: a local Ray instance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(fn=cmd_dataset)
+    p = sub.add_parser("solve", help="solve real frames (FITS, 8/16-bit PNG or TIFF) lost in space: attitude, "
+                                     "RA/Dec/roll, identified stars")
+    p.add_argument("files", nargs="+", metavar="FILE", help="grey frames: .fits (starenv[fits]), .png, .tif/.tiff")
+    camera = p.add_mutually_exclusive_group(required=True)
+    camera.add_argument("--camera", metavar="CAMERA.toml",
+                        help="a camera file: a [camera] table with the keys of a scenario's [[heads]] (without "
+                             "psf_sigma_px the spot size is measured on each frame)")
+    camera.add_argument("--fov", type=float, metavar="DEG",
+                        help="a pinhole camera with this field across the image columns (deg), centred, no "
+                             "distortion; the spot size is measured on each frame")
+    p.add_argument("--fov-tolerance", type=float, default=None, metavar="FRACTION",
+                   help="a frame not solved with the camera's focal length is solved again with it scaled over "
+                        "1 +- FRACTION (default 0.1, starenv.real.solve.FOV_TOLERANCE; 0: no search); the field "
+                        "fitted to the identified stars is reported (fov_fitted_deg)")
+    p.add_argument("--pipeline", default=None, metavar="FILE.toml",
+                   help="the [pipeline] table of this file (a scenario's, or a file holding only it: agents, options, "
+                        "catalog_mag_limit) over the lost-in-space pipeline (roles used: detector, identifier, "
+                        "solver)")
+    p.add_argument("--agent", action="append", default=[], metavar="ROLE=module:Class",
+                   help="replace an agent of the pipeline (after --pipeline)")
+    p.add_argument("--trust", action="append", default=[], metavar="MODULE_PREFIX", help=TRUST_HELP)
+    p.add_argument("--epoch", type=float, default=None, metavar="YEAR",
+                   help="Julian year of the catalogue positions (default 2026.0; the frames' date, for fast stars)")
+    p.add_argument("--json", default=None, metavar="OUT.json", help="write every frame's solution here")
+    p.add_argument("--wcs-fits", default=None, metavar="DIR",
+                   help="write each solved frame to DIR/NAME.fits with its solved WCS (starenv[fits])")
+    p.add_argument("--force", action="store_true", help="replace existing --json and --wcs-fits outputs")
+    p.set_defaults(fn=cmd_solve)
+    p = sub.add_parser("calibrate", help="fit a camera's digital twin from real frames: focal length, principal point, "
+                                         "distortion, spot, background and noise, zero point")
+    p.add_argument("files", nargs="+", metavar="FILE", help="grey frames of one camera (.fits, .png, .tif/.tiff)")
+    p.add_argument("--fov", type=float, required=True, metavar="DEG",
+                   help="the field across the image columns (deg), roughly: the frames are solved with it first")
+    p.add_argument("--out", required=True, metavar="CAMERA.toml",
+                   help="the twin as a camera file ([camera], for solve --camera and compare --camera)")
+    p.add_argument("--scenario", default=None, metavar="TWIN.toml",
+                   help="the twin as a scenario (default: OUT's name + _scenario.toml)")
+    p.add_argument("--report", default=None, metavar="REPORT.md",
+                   help="the fit's report: residual table per model, every value with its 1 sigma (default OUT.md)")
+    p.add_argument("--distortion", choices=("auto", "pinhole", "brown", "legendre"), default="auto",
+                   help="the twin's distortion model (default auto: the lowest BIC); all three are fitted and tabled")
+    p.add_argument("--legendre-order", type=int, default=4, metavar="N",
+                   help="total order of paper 003's Legendre field (2-8, default 4)")
+    p.add_argument("--exposure-s", type=float, default=1.0, metavar="S",
+                   help="the frames' exposure (s; default 1): the zero point and dark current are per second")
+    p.add_argument("--epoch", type=float, default=2026.0, metavar="YEAR",
+                   help="Julian year of the catalogue positions (default 2026.0)")
+    p.add_argument("--gain", type=float, default=None, metavar="E_PER_DN",
+                   help="known gain (e-/DN); default: measured from the frames' photon-transfer line where their "
+                        "background levels spread enough, else 1 assumed")
+    p.add_argument("--bias-dn", type=float, default=None, metavar="DN",
+                   help="known bias (DN, e.g. from a dark frame): read noise is measured only with it")
+    p.add_argument("--pixel-pitch-um", type=float, default=5.0, metavar="UM",
+                   help="pixel pitch written to the twin (default 5; frames give focal length / pitch only)")
+    p.add_argument("--f-number", type=float, default=2.0, metavar="N",
+                   help="f-number written to the twin (default 2; lowered where the zero point needs a larger pupil)")
+    p.add_argument("--force", action="store_true", help="replace existing outputs")
+    p.set_defaults(fn=cmd_calibrate)
+    p = sub.add_parser("compare", help="real frames beside their twin rendered at each solved attitude: star fluxes, "
+                                       "spots, centroids, background, detections; a table and plots")
+    p.add_argument("files", nargs="+", metavar="FILE", help="grey frames of the camera (.fits, .png, .tif/.tiff)")
+    p.add_argument("--camera", required=True, metavar="TWIN.toml", help="the twin: a camera file (starenv calibrate)")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for compare.md and the plots")
+    p.add_argument("--exposure-s", type=float, default=1.0, metavar="S",
+                   help="the frames' exposure (s; default 1, as starenv calibrate's)")
+    p.add_argument("--epoch", type=float, default=2026.0, metavar="YEAR",
+                   help="Julian year of the catalogue positions (default 2026.0)")
+    p.add_argument("--seed", type=int, default=0, help="the twin's noise seed (frame k takes seed + k)")
+    p.add_argument("--force", action="store_true", help="replace an existing DIR/compare.md")
+    p.set_defaults(fn=cmd_compare)
     sub.add_parser("train", help="train paper 002's network on a dataset (options: starenv train --help)")
     args = parser.parse_args(argv)
     try:
         return args.fn(args)
+    except BrokenPipeError:
+        raise
     except Exception as exc:  # noqa: BLE001  (one line; --debug shows the traceback)
-        return _fail("starenv", exc, debug)
+        return _fail("starenv", _as_typed(exc, getattr(args, "set", [])), debug)
 
 
 if __name__ == "__main__":

@@ -2,13 +2,16 @@
 that refuse unknown keys, dotted-path overrides, and a TOML writer.
 
 Every error is one ``ConfigError`` (or the subclass a file kind names: ``ScenarioError``, ``BenchError``,
-``DatasetError``) that says ``file: dotted.key: expected <form>, got <value>``.  Files are data: nothing here imports
-or calls what a file names.
+``DatasetError``) that says ``file: dotted.key: expected <form>, got <value>``; an error in what an override set
+names the override first (``override KEY=VALUE on file: ...``; the command line shows ``--set KEY=VALUE: ...``), and a
+misspelt key is named with the closest valid one (``did you mean 'exposure_s'?``, :func:`closest_key`).  Files are
+data: nothing here imports or calls what a file names.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import tomllib
 from typing import Any
@@ -19,7 +22,27 @@ REQUIRED = object()  # default meaning "the key must be present"
 
 
 class ConfigError(ValueError):
-    """A TOML file (or override) whose content does not have the expected form."""
+    """A TOML file (or override) whose content does not have the expected form.  ``override``: the dotted key of the
+    override the error lies in (None: the file's own content); ``detail``: the message after that override's name."""
+
+    override: str | None = None
+    detail: str = ""
+
+
+def closest_key(key: str, candidates) -> str | None:
+    """The candidate (a string) that ``key`` most likely misspells, or None: difflib's closest at a ratio >= 0.75,
+    except a sibling key that differs by one whole ``_``-separated word unlike its counterpart (``coeffs_x_px`` and
+    ``coeffs_y_px``, ``initial_ra_deg`` and ``initial_dec_deg`` name different things; ``exposur_s`` misspells
+    ``exposure_s``)."""
+    if not isinstance(key, str):
+        return None
+    for match in difflib.get_close_matches(key, [c for c in candidates if isinstance(c, str)], n=3, cutoff=0.75):
+        words, other = key.split("_"), match.split("_")
+        differ = [(a, b) for a, b in zip(words, other, strict=False) if a != b] if len(words) == len(other) else []
+        if len(differ) == 1 and difflib.SequenceMatcher(None, *differ[0]).ratio() <= 0.5:
+            continue
+        return match
+    return None
 
 
 def parse_toml(text: str, source: str, error: type[ConfigError] = ConfigError) -> dict:
@@ -45,8 +68,11 @@ def is_number(x: Any) -> bool:
 class Table:
     """Typed access to one TOML table that remembers which keys were read, to refuse the rest."""
 
-    def __init__(self, data: Any, path: str, source: str, error: type[ConfigError] = ConfigError):
+    def __init__(self, data: Any, path: str, source: str, error: type[ConfigError] = ConfigError,
+                 overrides: dict[str, str] | None = None):
         self.path, self.source, self.error = path, source, error
+        # dotted key -> the override that set it, as its errors name it ("override motion.rate_dps=[0, 0, 5]")
+        self.overrides = overrides or {}
         if not isinstance(data, dict):
             self.fail("", "a table", data)
         self.data, self.used = data, set()
@@ -54,9 +80,30 @@ class Table:
     def where(self, key: str) -> str:
         return f"{self.path}.{key}" if self.path and key else (self.path or key or "(top level)")
 
+    def located(self, key: str, text: str, where: str | None = None, unknown: bool = False) -> ConfigError:
+        """The error ``text`` about ``key`` (or the place ``where``), located ``file: dotted.key: text``.  When an
+        override set the key or a table above it (for an ``unknown`` key, also a key below it), the message opens
+        naming it (``override KEY=VALUE on file: dotted.key: text``), and the error's ``override`` and ``detail``
+        (the message after the override, as the command line shows it: ``--set KEY=VALUE: detail``) are set."""
+        where = str(self.where(key) if where is None else where)
+        for given, label in self.overrides.items():
+            if where == given or where.startswith(given + ".") or (unknown and given.startswith(where + ".")):
+                exc = self.error(f"{label} on {self.source}: {where}: {text}")
+                exc.override, exc.detail = given, text if where == given else f"{where}: {text}"
+                return exc
+        return self.error(f"{self.source}: {where}: {text}")
+
     def fail(self, key: str, expected: str, got: Any = REQUIRED) -> None:
         found = "it is missing" if got is REQUIRED else f"got {got!r}"
-        raise self.error(f"{self.source}: {self.where(key)}: expected {expected}, {found}")
+        if got is REQUIRED:
+            typo = closest_key(key, [k for k in self.data if k not in self.used])
+            if typo is not None:
+                found += f" (found {typo!r}: did you mean {key!r}?)"
+        raise self.located(key, f"expected {expected}, {found}")
+
+    def child(self, data: Any, path: str) -> Table:
+        """A table below this one (same file, error kind and overrides)."""
+        return Table(data, path, self.source, self.error, self.overrides)
 
     def raw(self, key: str, default: Any, expected: str) -> Any:
         """The value of ``key`` (``default`` when absent); a present ``None`` (an override) is always refused."""
@@ -134,19 +181,21 @@ class Table:
 
     def table(self, key, required: bool = False) -> Table | None:
         v = self.raw(key, REQUIRED if required else None, "a table")
-        return None if v is None else Table(v, self.where(key), self.source, self.error)
+        return None if v is None else self.child(v, self.where(key))
 
     def tables(self, key) -> list[Table]:
         v = self.raw(key, REQUIRED, "an array of tables ([[...]])")
         if not isinstance(v, list) or not v:
             self.fail(key, "a non-empty array of tables ([[...]])", v)
-        return [Table(item, f"{self.where(key)}.{i}", self.source, self.error) for i, item in enumerate(v)]
+        return [self.child(item, f"{self.where(key)}.{i}") for i, item in enumerate(v)]
 
     def finish(self) -> None:
         extra = sorted(set(self.data) - self.used)
         if extra:
             allowed = ", ".join(sorted(self.used)) or "none"
-            raise self.error(f"{self.source}: {self.where(extra[0])}: unknown key (allowed here: {allowed})")
+            typo = closest_key(extra[0], self.used)
+            guess = "" if typo is None else f"did you mean {typo!r}? "
+            raise self.located(extra[0], f"unknown key ({guess}allowed here: {allowed})", unknown=True)
 
     def build(self, what: str, fn, *args, **kwargs):
         """Call a model constructor, turning its ValueError into this table's error, located in this table."""
@@ -155,7 +204,7 @@ class Table:
         except ConfigError:
             raise
         except ValueError as exc:
-            raise self.error(f"{self.source}: {self.path or what}: {exc}") from exc
+            raise self.located("", str(exc), where=self.path or what) from exc
 
 
 def dataclass_from_table(tbl: Table | None, cls):
@@ -172,6 +221,10 @@ def dataclass_from_table(tbl: Table | None, cls):
             value = None if value is None else tuple(map(tuple, value.tolist()))
         elif isinstance(default, tuple):
             value = tbl.vector(f.name, len(default), None)
+        elif isinstance(default, bool):
+            value = tbl.raw(f.name, None, "true or false")
+            if value is not None and not isinstance(value, bool):
+                tbl.fail(f.name, "true or false", value)
         else:
             value = tbl.number(f.name, None, integer=isinstance(default, int) and not isinstance(default, bool))
         if value is not None:
@@ -182,7 +235,7 @@ def dataclass_from_table(tbl: Table | None, cls):
     except ValueError as exc:  # the model's checks name the field first: "adc_bits must be ..."
         word = str(exc).split(" ", 1)[0].rsplit(".", 1)[-1]
         key = word if word in {f.name for f in dataclasses.fields(cls)} else ""
-        raise tbl.error(f"{tbl.source}: {tbl.where(key)}: {exc}") from exc
+        raise tbl.located(key, str(exc)) from exc
 
 
 def apply_override(data: dict, dotted: str, value: Any, source: str, error: type[ConfigError] = ConfigError) -> None:

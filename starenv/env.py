@@ -14,6 +14,12 @@ Observation (``Dict``), as the sensor delivers it -- never truth:
   the previous observation (s; rad/s, body frame, average rate over each sample interval), padded with zeros up to
   ``N = ceil(rate_hz / frame_rate_hz) + 1``.
 * ``time_s``: float64 (), mid-exposure time of the frame; ``exposure_s``: float64 ().
+* ``observer_velocity_m_s``: float64 (3,), the sensor's velocity (m/s, ICRS axes) at mid-exposure as navigation gives
+  it to flight software: the Earth's barycentric velocity plus the orbital one, the velocity the stars are aberrated
+  for (``[sky] aberration``); zeros when the scenario renders geometric star directions.
+* ``blinded``: int8 (heads,), 1 where the Sun, the Moon or the Earth's limb lies within the head's exclusion angle
+  (``[sky] bodies``, ``[heads.baffle]``): the frame is delivered but fogged or saturated by stray light, as the
+  sensor's status word flags it.
 
 Action (``Dict``): ``attitude`` float64 (4,) quaternion ``[x, y, z, w]`` (inertial -> body, at mid-exposure of the
 observed frame; normalised on receipt) and ``attitude_valid`` int8 (); optionally per-head star lists padded to
@@ -56,6 +62,10 @@ Info.  ``reset`` returns ``{"truth"}``, ``step`` ``{"truth", "scores"}``:
   arrays, one row per star on the frame: ``catalog_id`` (HIP number), ``magnitude`` (Hipparcos Hp), ``xy_mid`` /
   ``xy_centroid`` / ``xy_start`` / ``xy_end`` (n, 2) px (distorted pixel coordinates; mid-exposure position, trail
   centroid, trail ends), ``electrons`` and ``peak_electrons`` (e-; total and brightest pixel), ``detectable`` bool.
+  With ``[sky] bodies``: ``blinded`` (per head, the bodies blinding it, comma-separated, "" for none),
+  ``stray_e_per_px_s`` (per head, the bodies' stray light, e-/px/s) and ``bodies`` (per head, one row per body:
+  ``name``, ``xy_mid`` px (NaN behind the camera), ``angle_deg`` from the boresight (the Earth's: its limb's),
+  ``magnitude`` (V), ``electrons`` drawn on the sensor, ``in_field``).
 * ``scores`` (of the action, against frame ``scores["frame"]``, the previous observation): ``frame`` int and
   ``time_s`` float (s, that frame's mid-exposure time), the step's scores, ``attitude`` (empty when unavailable, so
   that vector envs can merge the infos) holding the error's ``body`` (its signed components about the body axes)
@@ -87,6 +97,7 @@ from starenv.scoring import score_step, threshold_errors
 from starenv.sim.sensor import Frame, StarSensor
 
 GYRO_RATE_BOUND = math.radians(3600.0)  # rad/s, the observation space's bound on each gyro rate component
+VELOCITY_BOUND_M_S = 1e5  # m/s, the observation space's bound on each observer velocity component
 __doc__ += metrics.info_table() + "\n"
 
 
@@ -132,6 +143,8 @@ class StarSensorEnv(gym.Env):
                 ),
                 "time_s": spaces.Box(0.0, horizon, (), np.float64),
                 "exposure_s": spaces.Box(0.0, horizon, (), np.float64),
+                "observer_velocity_m_s": spaces.Box(-VELOCITY_BOUND_M_S, VELOCITY_BOUND_M_S, (3,), np.float64),
+                "blinded": spaces.Box(0, 1, (n_heads,), np.int8),
             }
         )
         self.action_space = spaces.Dict(
@@ -172,9 +185,10 @@ class StarSensorEnv(gym.Env):
 
     @property
     def sensor_info(self) -> SensorInfo:
-        """What a policy may know of the sensor before the first frame: calibrated cameras, gyro rate, epoch."""
+        """What a policy may know of the sensor before the first frame: calibrated cameras, gyro rate, epoch, the
+        onboard catalogue's file."""
         sc = self.scenario
-        return SensorInfo(self.cameras, sc.gyro.rate_hz, sc.epoch)
+        return SensorInfo(self.cameras, sc.gyro.rate_hz, sc.epoch, sc.onboard_catalog)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start an episode: returns ``(observation of frame 0, {"truth": ...})``.
@@ -279,9 +293,12 @@ class StarSensorEnv(gym.Env):
 
     def _observation(self, frame: Frame) -> dict:
         space = self.observation_space
-        frames = np.zeros(space["frames"].shape, dtype=np.uint16)
+        frames = np.empty(space["frames"].shape, dtype=np.uint16)  # only a smaller head's padding is zeroed
         for i, h in enumerate(frame.heads):
-            frames[i, : h.image.shape[0], : h.image.shape[1]] = h.image
+            rows, cols = h.image.shape
+            frames[i, :rows, :cols] = h.image
+            frames[i, rows:] = 0
+            frames[i, :rows, cols:] = 0
         n = len(frame.gyro.t)
         if n > self.max_gyro:
             raise RuntimeError(f"{n} gyro samples in one step exceed the layout's {self.max_gyro}")
@@ -294,6 +311,8 @@ class StarSensorEnv(gym.Env):
             "gyro": {"t": t, "rate": rate, "count": np.array(n, dtype=np.int64)},
             "time_s": np.array(frame.t_mid, dtype=np.float64),
             "exposure_s": np.array(self.scenario.exposure_s, dtype=np.float64),
+            "observer_velocity_m_s": np.array(frame.observer_velocity_m_s, dtype=np.float64),
+            "blinded": np.array([h.bodies is not None and h.bodies.blinded for h in frame.heads], dtype=np.int8),
         }
 
     @staticmethod
@@ -306,7 +325,11 @@ class StarSensorEnv(gym.Env):
             "gyro_bias": frame.gyro_bias,
             "dropped": [h.dropped for h in frame.heads],
             "stars": [h.truth.as_dict() for h in frame.heads],
-        }
+        } | ({} if frame.heads[0].bodies is None else {
+            "blinded": [h.bodies.blinded_by for h in frame.heads],
+            "stray_e_per_px_s": [h.bodies.stray_e_per_px_s for h in frame.heads],
+            "bodies": [h.bodies.truth for h in frame.heads],
+        })
 
 
 def _array(action: dict, key: str, shape: tuple, kind: str) -> np.ndarray:

@@ -132,7 +132,7 @@ def _restoration_scores(env, report: StepReport, truth: dict) -> list[dict] | No
         if restoration is None:
             continue
         stars = StarTruth(**{k: np.asarray(v) for k, v in truth["stars"][h].items()})
-        clean = base.sensor.still_frame(h, stars)
+        clean = base.sensor.still_frame(h, stars, frame=truth["frame"])
         per_head.append(score_restoration(stars, restoration.raw, restoration.restored, report.detector,
                                           base.cameras[h], clean, restoration.info))
     return per_head

@@ -1,11 +1,13 @@
-"""Files written whole or not at all: a temporary file beside the target, created exclusively under a unique name
-(``tempfile.mkstemp``: ``O_EXCL``, so a file or symbolic link someone prepared there is never opened), flushed and
-synced, then moved into place with ``os.replace`` (atomic on one file system), removed instead when writing fails.
-A reader -- a resumed bench, a dataset build, a catalogue cache -- never sees half a file.  A symbolic link at the
-target is refused rather than replaced, and ``replace=False`` keeps an existing target."""
+"""Files written whole or not at all (and the one reader of the CSV files users hand in, :func:`csv_rows`): a temporary
+file beside the target, created exclusively under a unique name (``tempfile.mkstemp``: ``O_EXCL``, so a file or
+symbolic link someone prepared there is never opened), flushed and synced, then moved into place with ``os.replace``
+(atomic on one file system), removed instead when writing fails.  A reader -- a resumed bench, a dataset build, a
+catalogue cache -- never sees half a file.  A symbolic link at the target is refused rather than replaced, and
+``replace=False`` keeps an existing target."""
 
 from __future__ import annotations
 
+import csv
 import os
 import tempfile
 from collections.abc import Iterator
@@ -65,3 +67,34 @@ def _publish_new(tmp: str, path: Path) -> None:
         os.replace(tmp, path)
         return
     os.unlink(tmp)
+
+
+def csv_rows(path: str | os.PathLike, columns: tuple[str, ...], optional: tuple[str, ...] = (), *,
+             max_bytes: int) -> Iterator[tuple[int, dict[str, str]]]:
+    """The rows of a user's CSV file as (line number, {column: text}), after its header: the first line that is not
+    blank or a ``#`` comment, naming every one of ``columns`` and any of ``optional``, each once, in any order (the
+    rows' blank and comment lines are skipped too).  A file over ``max_bytes``, not UTF-8, with a wrong header or a
+    row of the wrong length raises ValueError naming ``file:line``; one with no header yields nothing."""
+    path = Path(path)
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise ValueError(f"{path}: at most {max_bytes} bytes expected, got {size}")
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    header: list[str] | None = None
+    for line, fields in enumerate(csv.reader(text.splitlines()), start=1):
+        if not fields or not "".join(fields).strip() or fields[0].lstrip().startswith("#"):
+            continue
+        if header is None:
+            header = [f.strip() for f in fields]
+            if (len(set(header)) != len(header) or not set(columns) <= set(header)
+                    or not set(header) <= set(columns) | set(optional)):
+                extra = f" (and optionally {', '.join(optional)})" if optional else ""
+                raise ValueError(f"{path}:{line}: expected a header naming the columns {', '.join(columns)}{extra}, "
+                                 f"each once, got {', '.join(header)[:200]!r}")
+            continue
+        if len(fields) != len(header):
+            raise ValueError(f"{path}:{line}: expected {len(header)} fields ({', '.join(header)}), got {len(fields)}")
+        yield line, dict(zip(header, fields, strict=True))

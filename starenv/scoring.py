@@ -239,7 +239,7 @@ def score_step(action: dict, frame, scenario) -> dict:
             h.truth, detected_xy=action["detections_xy"][i], claimed_ids=action["catalog_ids"][i],
             predicted_ids=action["predicted_ids"][i], predicted_xy=action["predicted_xy"][i],
             corrected_xy=action["corrected_xy"][i],
-            calibrated_xy=calibrated_positions(h.truth.xy_centroid, spec.camera, spec.calibrated))))
+            calibrated_xy=calibrated_positions(h.truth.xy_centroid, h.camera or spec.camera, spec.calibrated))))
     step = StepFrame(estimate, att, scenario.availability_threshold_arcsec)
     return {"frame": frame.index, "time_s": float(frame.t_mid), **{m.key: m.compute(step) for m in declared("step")},
             "attitude": att, "heads": heads}

@@ -4,7 +4,8 @@
   ``channels_last``, the layout of image CNN policies); a dropped head's image is all zeros.
 * :class:`FlatStateObservation`: a flat ``Dict`` with the frames and one float64 ``state`` vector holding everything
   else, in this order: ``frame_valid`` (heads), ``gyro.count``, ``gyro.t`` (N, s), ``gyro.rate`` (N x 3 row-major,
-  rad/s, body), ``time_s``, ``exposure_s`` (s).  :meth:`FlatStateObservation.state_names` names each entry.
+  rad/s, body), ``time_s``, ``exposure_s`` (s), ``observer_velocity_m_s`` (3, m/s, ICRS axes), ``blinded`` (heads).
+  :meth:`FlatStateObservation.state_names` names each entry.
 
 ``gymnasium.wrappers.FlattenObservation`` also works on the env (everything, the frames included, in one float64
 vector).  Both wrappers keep the env's action space, reward and info.
@@ -39,7 +40,8 @@ class FlatStateObservation(gym.ObservationWrapper):
         super().__init__(env)
         space = env.observation_space
         gyro = space["gyro"]
-        parts = [space["frame_valid"], gyro["count"], gyro["t"], gyro["rate"], space["time_s"], space["exposure_s"]]
+        parts = [space["frame_valid"], gyro["count"], gyro["t"], gyro["rate"], space["time_s"], space["exposure_s"],
+                 space["observer_velocity_m_s"], space["blinded"]]
         low = np.concatenate([np.ravel(p.low).astype(np.float64) for p in parts])
         high = np.concatenate([np.ravel(p.high).astype(np.float64) for p in parts])
         self.observation_space = spaces.Dict(
@@ -52,12 +54,14 @@ class FlatStateObservation(gym.ObservationWrapper):
         n_heads, n_gyro = space["frame_valid"].shape[0], space["gyro"]["t"].shape[0]
         return ([f"frame_valid[{h}]" for h in range(n_heads)] + ["gyro.count"]
                 + [f"gyro.t[{i}]" for i in range(n_gyro)]
-                + [f"gyro.rate[{i},{j}]" for i in range(n_gyro) for j in range(3)] + ["time_s", "exposure_s"])
+                + [f"gyro.rate[{i},{j}]" for i in range(n_gyro) for j in range(3)] + ["time_s", "exposure_s"]
+                + [f"observer_velocity_m_s[{j}]" for j in range(3)] + [f"blinded[{h}]" for h in range(n_heads)])
 
     def observation(self, observation: dict) -> dict:
         g = observation["gyro"]
         state = np.concatenate([
             np.ravel(observation["frame_valid"]), np.ravel(g["count"]), np.ravel(g["t"]), np.ravel(g["rate"]),
             np.ravel(observation["time_s"]), np.ravel(observation["exposure_s"]),
+            np.ravel(observation["observer_velocity_m_s"]), np.ravel(observation["blinded"]),
         ]).astype(np.float64)
         return {"frames": observation["frames"], "state": state}

@@ -9,10 +9,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
-from scipy.special import ndtr
+from scipy.special import ndtr, ndtri
 
 from starenv.agents import blocks
 from starenv.agents.blocks import (
+    background,
     background_maps,
     component_peaks,
     components_above,
@@ -22,6 +23,7 @@ from starenv.agents.blocks import (
     streak_candidates,
     wahba_svd,
 )
+from starenv.agents.blocks.background import censored_mean_std
 
 EPS = np.finfo(np.float64).eps
 
@@ -159,6 +161,82 @@ def test_background_maps_follow_a_plane_within_the_tiles_standard_error():
     assert np.abs(level_map - plane).max() < 2 * 5 * NOISE_DN / 16
     # The noise of a tile comes from 8 x 31 differences: relative standard error sqrt(1.5 / 496).
     assert np.abs(noise_map / NOISE_DN - 1.0).max() < 2 * 5 * math.sqrt(1.5 / 496)
+
+
+
+def _censored_population(mean: float, std: float, probability: float) -> float:
+    """The quantile ``censored_mean_std`` reads at ``probability`` from a whole population of Gaussian values rounded
+    to integers: the bin ``[v - 1/2, v + 1/2)`` holding it, interpolated linearly in the Gaussian's CDF at its edges."""
+    v = math.ceil(mean + std * ndtri(probability) - 0.5)
+    lo, hi = ndtr((v - 0.5 - mean) / std), ndtr((v + 0.5 - mean) / std)
+    return v - 0.5 + (probability - lo) / (hi - lo)
+
+
+def _censored_expectation(mean: float, std: float, n: int, integer: bool) -> tuple[float, float, float, float]:
+    """What ``censored_mean_std`` should give on ``n`` Gaussian values cut at 0 (rounded first if ``integer``): the
+    mean and sigma it tends to, and their standard errors.  The quantiles' asymptotic variances are
+    ``p (1 - p) / (n phi(z)^2) sigma^2``, their covariance ``p_a (1 - p_b) / (n phi_a phi_b) sigma^2``; integer
+    values tend to the population values of :func:`_censored_population`."""
+    p0 = ndtr(((0.5 if integer else 0.0) - mean) / std)
+    pa, pb = max(0.5, p0 + 0.25 * (1 - p0)), max(0.9, p0 + 0.75 * (1 - p0))
+    za, zb = ndtri(pa), ndtri(pb)
+    fa, fb = np.exp(-0.5 * za * za) / math.sqrt(2 * math.pi), np.exp(-0.5 * zb * zb) / math.sqrt(2 * math.pi)
+    var_a, var_b, cov = pa * (1 - pa) / fa**2 / n, pb * (1 - pb) / fb**2 / n, pa * (1 - pb) / (fa * fb) / n
+    std_se = std * math.sqrt(var_a + var_b - 2 * cov) / (zb - za)
+    mean_se = std * math.sqrt(var_a) + abs(za) * std_se
+    if not integer:
+        return mean, std, mean_se, std_se
+    xa, xb = _censored_population(mean, std, pa), _censored_population(mean, std, pb)
+    expected_std = (xb - xa) / (zb - za)
+    return xa - za * expected_std, expected_std, mean_se, std_se
+
+
+@pytest.mark.parametrize("integer", [False, True])
+def test_censored_mean_std_recovers_the_gaussian_behind_a_cut_at_zero(integer):
+    """Gaussian values (mean 1 DN, sigma 3 DN: 37 % of them below 0) read 0 below 0, as a floored background.  The
+    estimate is two quantiles above the pile at 0, within 5 standard errors (:func:`_censored_expectation`) of the
+    truth.  Integer values (rounded): the interpolation within a bin is exact at the bins' edges only, so the
+    estimate tends to the population value computed from the Gaussian's CDF (:func:`_censored_population`), which
+    lies within 2 % of the true sigma for these values."""
+    mean, std, n = 1.0, 3.0, 200_000
+    rng = np.random.default_rng(11)
+    values = rng.normal(mean, std, (4, n))
+    values = np.maximum(np.round(values) if integer else values, 0.0).astype(np.float32)
+    got_mean, got_std, kept = censored_mean_std(values)
+    expected_mean, expected_std, mean_se, std_se = _censored_expectation(mean, std, n, integer)
+    assert abs(expected_std / std - 1.0) < 0.02
+    assert np.all(np.abs(got_std - expected_std) < 5 * std_se)
+    assert np.all(np.abs(got_mean - expected_mean) < 5 * mean_se)
+    if not integer:  # kept: the values at most 3 sigma above the mean (the pile at 0 among them): Phi(3), to the
+        # sampling error of a fraction and that of the limit mean + 3 std (density phi(3) / sigma there)
+        limit_se = (mean_se + 3 * std_se) / std
+        phi3 = math.exp(-4.5) / math.sqrt(2 * math.pi)
+        assert np.all(np.abs(kept - ndtr(3.0)) < 5 * (math.sqrt(ndtr(3.0) * ndtr(-3.0) / n) + phi3 * limit_se))
+
+
+def test_a_background_cut_at_zero_gives_its_gaussian_and_an_uncut_one_is_unchanged(monkeypatch):
+    """A frame whose background (1 DN, noise 3 DN) is cut at 0: ``frame_background`` gives the Gaussian behind the cut
+    (its expected values, as above, within 5 standard errors for the whole frame's sample), where the
+    sigma-clipped statistics read the pile at 0 as part of a narrower distribution.  Frames with no pile at 0 DN (or
+    one below ``CLIPPED_FRACTION``, or a dropped frame of zeros, too many to place the quantiles) give exactly what
+    they gave before the censored path existed (the gate off)."""
+    rng = np.random.default_rng(12)
+    cut = np.maximum(np.round(rng.normal(1.0, 3.0, (SIZE, SIZE))), 0).astype(np.uint16)
+    level, noise = frame_background(cut)
+    expected_level, expected_noise, level_se, noise_se = _censored_expectation(1.0, 3.0, cut.size, True)
+    assert abs(noise - expected_noise) < 5 * noise_se and abs(level - expected_level) < 5 * level_se
+    uncut = [noisy_frame(7, 0.01), np.round(noisy_frame(8)).astype(np.uint16),
+             np.maximum(np.round(rng.normal(9.0, 3.0, (SIZE, SIZE))), 0).astype(np.uint16), np.zeros((64, 64))]
+    # The last: 0.13 % of its values at 0; a tile's 256-value sample reaches 2 % (6 of them) with a chance of 1e-5.
+    results = [(frame_background(f), background_maps(np.asarray(f, np.float32), 32)) for f in uncut]
+    gated_level, gated_noise = frame_background(cut)
+    monkeypatch.setattr(background, "CLIPPED_FRACTION", 2.0)  # never: the sigma-clipped statistics alone
+    old_level, old_noise = frame_background(cut)
+    assert old_noise < 0.75 * gated_noise and (gated_level, gated_noise) == (level, noise)
+    for frame, (scalar, maps) in zip(uncut, results, strict=True):
+        assert frame_background(frame) == scalar
+        for new, old in zip(maps, background_maps(np.asarray(frame, np.float32), 32), strict=True):
+            assert np.array_equal(new, old)
 
 
 # --- candidates ------------------------------------------------------------------------------------------------------

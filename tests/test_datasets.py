@@ -244,3 +244,19 @@ def test_a_build_killed_at_any_write_resumes_to_the_same_bytes(tmp_path, monkeyp
         monkeypatch.setattr(shards, "atomic_file", real_atomic)
         build_dataset(spec, out, jobs=1, progress=False, log=lambda *_: None)
         assert _files(out) == whole, f"killed before write {kill_at}"
+
+
+def test_a_sample_replaces_the_motion_as_a_reload_does():
+    """``with_motion`` (what each sample does to the once-parsed scenario) gives the mission a reload with the
+    motion override gives, and refuses what the loader refuses (a trail over its bound)."""
+    from starenv import scenario as scenario_mod
+
+    base = scenario_mod.load("paper_002")
+    motion = {"kind": "constant_rate", "rate_dps": [1.5, -2.0, 6.0], "initial_ra_deg": 10.0, "initial_dec_deg": -30.0,
+              "initial_roll_deg": 45.0}
+    fast, reloaded = scenario_mod.with_motion(base, motion), scenario_mod.load("paper_002", {"motion": motion})
+    for t in (0.0, 0.046, 1.0):
+        assert np.array_equal(fast.trajectory.attitude(t).as_quat(), reloaded.trajectory.attitude(t).as_quat())
+    assert fast.to_toml() == reloaded.to_toml()
+    with pytest.raises(scenario_mod.ScenarioError, match="star trails of at most"):
+        scenario_mod.with_motion(base, {**motion, "rate_dps": [900.0, 0.0, 0.0]})

@@ -171,7 +171,7 @@ def test_pickled_env_continues_identically():
 def test_observation_holds_no_truth_and_a_documented_gyro_layout():
     env = small_env()
     obs, info = env.reset(seed=0)
-    assert set(obs) == {"frames", "frame_valid", "gyro", "time_s", "exposure_s"}
+    assert set(obs) == {"frames", "frame_valid", "gyro", "time_s", "exposure_s", "observer_velocity_m_s", "blinded"}
     assert obs in env.observation_space
     sc = env.scenario
     last = -np.inf
@@ -185,6 +185,21 @@ def test_observation_holds_no_truth_and_a_documented_gyro_layout():
         assert t[n - 1] <= k / sc.frame_rate_hz + sc.exposure_s + 1e-12
         last = t[n - 1]
         assert float(obs["time_s"]) == pytest.approx(k / sc.frame_rate_hz + sc.exposure_s / 2)
+
+
+def test_a_smaller_head_is_padded_with_zeros_below_and_right_of_its_image():
+    # paper_004's three 512 px heads, the second cut to 96 x 64: its image fills the top-left corner of its slot and
+    # nothing else does, step after step (the slot's memory is reused, so stale pixels would show).
+    env = StarSensorEnv("paper_004", {"heads.1.width": 96, "heads.1.height": 64})
+    obs, _ = env.reset(seed=5)
+    for _ in range(4):
+        image = env._frame.heads[1].image
+        assert image.shape == (64, 96) and image.any()
+        slot = obs["frames"][1]
+        assert np.array_equal(slot[:64, :96], image)
+        assert not slot[64:].any() and not slot[:64, 96:].any()
+        assert np.array_equal(obs["frames"][0], env._frame.heads[0].image)
+        obs, *_ = env.step(None)
 
 
 def test_dropped_frames_are_zeros_and_flagged():

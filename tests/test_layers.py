@@ -4,13 +4,13 @@ module of its own layer or a lower one.  Lowest first:
 0. ``checks``, ``datasheet``, ``files``, ``parallel``, ``scenarios`` (argument checks, the datasheet estimators,
    atomic files, task executors, the bundled files' package: no starenv imports);
 1. ``sim`` (the simulator: sky, motion, gyro, optics, photometry, render, imager, drops, sensor);
-2. ``config``, ``scenario`` (TOML files -> simulator models);
+2. ``config``, ``scenario``, ``sensor_sheet`` (TOML files -> simulator models; a scenario from a datasheet);
 3. ``datasets`` (samples drawn from the simulator for learning);
 4. ``agents`` (contracts in ``agents.base``, the building blocks, one package per role with its agents and their
    training, the pipeline);
 5. ``env``, ``episode``, ``scoring``, ``metrics``, ``view``, ``registration``, ``wrappers``, ``vector`` (the
    Gymnasium loop that drives policies, and the metric schema its scores follow);
-6. ``record``, ``bench``, ``cli`` and the package's ``__init__`` (front ends).
+6. ``record``, ``bench``, ``real``, ``cli`` and the package's ``__init__`` (front ends).
 """
 
 import ast
@@ -23,9 +23,9 @@ import starenv
 ROOT = Path(starenv.__file__).resolve().parent
 LAYERS = {
     "checks": 0, "datasheet": 0, "files": 0, "parallel": 0, "scenarios": 0, "sim": 1, "config": 2, "scenario": 2,
-    "datasets": 3, "agents": 4,
+    "sensor_sheet": 2, "datasets": 3, "agents": 4,
     "env": 5, "episode": 5, "scoring": 5, "metrics": 5, "view": 5, "registration": 5, "wrappers": 5, "vector": 5,
-    "record": 6, "bench": 6, "cli": 6, "__init__": 6,
+    "record": 6, "bench": 6, "real": 6, "cli": 6, "__init__": 6,
 }
 
 

@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import math
 
 import numpy as np
 import pytest
@@ -9,15 +10,18 @@ import torch
 
 from starenv.agents.identify.network_model import MainStarConfig, MainStarNet, parameter_count
 from starenv.agents.identify.network_train import parse_config, train
+from starenv.datasets.preprocess import network_input
 from starenv.datasets.shards import record_shards, write_npz
 
 
 def test_paper_architecture_shapes():
     net = MainStarNet(MainStarConfig())  # 4331 classes, 256 input, D 64, depth 8, 6 heads
-    frames = torch.full((2, 1024, 1024), 100, dtype=torch.int32)  # the paper's sensor, resized to 256 inside
+    frames = torch.from_numpy(network_input(np.full((2, 1024, 1024), 100, dtype=np.uint16), 256))  # paper's sensor
     assert net.preprocess(frames).shape == (2, 1, 256, 256)
     assert net.features(frames).shape == (2, 64, 16, 16)  # four stride-2 stages: 256 tokens of 64
     assert net(frames).shape == (2, 4331)
+    with pytest.raises(ValueError, match=r"expected inputs \(B, 256, 256\)"):
+        net(torch.zeros(2, 1024, 1024))  # a raw frame must be preprocessed first
     assert len(net.encoder) == 8 and net.encoder[0].attn.heads == 6
     convs = [m for m in net.blocks.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size == (3, 3)]
     assert len(convs) == 12  # 6 basic blocks / 12 conv layers
@@ -49,7 +53,7 @@ def test_bad_config_names_the_field():
 
 
 def _toy_dataset(folder, n, seed):
-    """Four classes: a bright spot in one image quadrant on a noisy background (uint16 DN)."""
+    """Four classes: a bright spot in one image quadrant on a noisy background (uint16 DN), stored preprocessed."""
     rng = np.random.default_rng(seed)
     labels = rng.integers(0, 4, n)
     images = rng.normal(100, 3, (n, 32, 32))
@@ -57,7 +61,7 @@ def _toy_dataset(folder, n, seed):
         r, c = 4 + 16 * (lab // 2) + rng.integers(0, 8), 4 + 16 * (lab % 2) + rng.integers(0, 8)
         img[r - 1:r + 2, c - 1:c + 2] += 300
     folder.mkdir()
-    shard = {"image": images.round().astype(np.uint16), "label": labels.astype(np.int32),
+    shard = {"image": network_input(images.round().astype(np.uint16), 32), "label": labels.astype(np.int32),
              "meta": np.frombuffer(json.dumps({"spec_digest": "toy"}).encode(), dtype=np.uint8)}
     record_shards(folder, "toy", {"shard-00000.npz": write_npz(folder / "shard-00000.npz", shard)})
     info = {"name": "toy", "kind": "main_star", "spec_digest": "toy", "starenv_version": "test", "samples": n,
@@ -124,3 +128,94 @@ def test_resume_replays_the_interrupted_run(toy):
     a = torch.load(toy / "full" / "weights.pt", weights_only=True)
     b = torch.load(toy / "cut" / "weights.pt", weights_only=True)
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_training_has_no_median_and_its_workers_do_not_change_the_weights(toy, monkeypatch):
+    """The code path `--device cuda` runs, on the CPU: no median anywhere in a training step (torch has no
+    deterministic CUDA median), and batches read by DataLoader workers give the weights of batches read here."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("median called in a training step")
+
+    monkeypatch.setattr(torch, "median", refuse)
+    monkeypatch.setattr(torch.Tensor, "median", refuse)
+    monkeypatch.setattr(torch, "nanmedian", refuse)
+    # three loader paths, with the rolls drawn per batch: shards read here, by two workers, and the set held in memory
+    here = _run(toy, "here", preload="no", rot90=True)
+    assert here["loader"] == {"in_memory": False, "workers": 0}
+    a = torch.load(toy / "here" / "weights.pt", weights_only=True)
+    same = ("epoch", "last_loss", "val")  # not the timings
+    for out, kw in (("workers", {"preload": "no", "workers": 2}), ("memory", {"preload": "yes", "workers": 2})):
+        other = _run(toy, out, rot90=True, **kw)
+        b = torch.load(toy / out / "weights.pt", weights_only=True)
+        assert all(torch.equal(a[k], b[k]) for k in a), out
+        assert [{k: m[k] for k in same} for m in here["metrics"]] == [{k: m[k] for k in same}
+                                                                       for m in other["metrics"]]
+        assert other["loader"]["in_memory"] == (out == "memory")
+        assert other["dataset"]["content_digest"] == here["dataset"]["content_digest"]
+
+
+def test_batches_are_the_samples_of_their_indices_turned_as_drawn(toy):
+    """Against an independent reading (``np.load`` of the shard, each image turned by ``np.rot90``): the batches
+    of both sources, across a shard boundary, and the rolls drawn from (seed, epoch, batch)."""
+    from starenv.agents.identify.network_data import InMemory, ShardDataset
+    from starenv.agents.identify.network_train import batches
+
+    with np.load(toy / "train" / "shard-00000.npz") as z:
+        images, labels = z["image"], z["label"]
+    for shard_size in (256, 100):  # one shard; then the same samples in shards of 100 (batches span two)
+        folder = toy / f"shards_of_{shard_size}"
+        folder.mkdir()
+        hashes = {}
+        for s in range(math.ceil(256 / shard_size)):
+            part = slice(s * shard_size, (s + 1) * shard_size)
+            hashes[f"shard-{s:05d}.npz"] = write_npz(folder / f"shard-{s:05d}.npz", {
+                "image": images[part], "label": labels[part],
+                "meta": np.frombuffer(json.dumps({"spec_digest": "toy"}).encode(), dtype=np.uint8)})
+        record_shards(folder, "toy", hashes)
+        info = json.loads((toy / "train" / "dataset.json").read_text())
+        info.update(n_shards=len(hashes), spec={"shard_size": shard_size})
+        (folder / "dataset.json").write_text(json.dumps(info))
+        dataset = ShardDataset(folder)
+        order = np.random.default_rng(5).permutation(256).tolist()
+        for source in (dataset, InMemory(dataset)):
+            for b, (x, y) in enumerate(batches(source, order, 96, turn=(7, 2))):
+                g = torch.Generator().manual_seed((7 * 1_000_003 + 2) * 1_000_003 + b)
+                turns = torch.randint(0, 4, (96,), generator=g).tolist()
+                chosen = order[96 * b:96 * (b + 1)]
+                expected = np.stack([np.rot90(images[i], q) for i, q in zip(chosen, turns, strict=True)])
+                assert np.array_equal(x.numpy(), expected) and y.tolist() == labels[chosen].tolist()
+            assert b == 1  # 256 // 96 whole batches
+
+
+def test_a_set_is_held_in_memory_only_when_it_fits(toy, monkeypatch):
+    from starenv.agents.identify import network_data
+    from starenv.agents.identify.network_data import ShardDataset, fits_in_memory
+
+    dataset = ShardDataset(toy / "train")
+    need = 256 * (32 * 32 * 4 + 8)  # float32 images and int64 labels
+    monkeypatch.setattr(network_data, "_host_available_bytes", lambda: 2 * need)
+    assert fits_in_memory(dataset, "cpu")
+    monkeypatch.setattr(network_data, "_host_available_bytes", lambda: 2 * need - 1)
+    assert not fits_in_memory(dataset, "cpu")
+
+
+@pytest.mark.parametrize("before, after", [(None, ":4096:8"), (":0:0", ":4096:8"), (":16:8", ":16:8")])
+def test_cuda_training_sets_a_deterministic_cublas_workspace(monkeypatch, before, after):
+    from starenv.agents.identify.network_train import deterministic_cuda_environment
+
+    if before is None:
+        monkeypatch.delenv("CUBLAS_WORKSPACE_CONFIG", raising=False)
+    else:
+        monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", before)
+    deterministic_cuda_environment()
+    import os
+
+    assert os.environ["CUBLAS_WORKSPACE_CONFIG"] == after
+
+
+def test_a_dataset_of_another_input_size_is_refused(toy):
+    info = json.loads((toy / "train" / "dataset.json").read_text())
+    info["spec"]["input_size"] = 64
+    (toy / "train" / "dataset.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match="--set input_size=32: the dataset's images are 64 px"):
+        _run(toy, "other")

@@ -19,7 +19,8 @@ from starenv.scenario import SCENARIO_DIR, bundled_names
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = {"paper_000", "paper_001", "paper_002", "paper_003", "paper_004", "stress_drops", "stress_stray_light",
-             "stress_tumble", "leo_distortion"}
+             "stress_tumble", "leo_distortion", "leo_bodies",
+             "moon_in_field", "hot_sensor", "leo_drift"}
 
 
 def test_bundled_files_are_package_resources():

@@ -61,6 +61,25 @@ def test_three_envs_in_two_workers_step_as_gymnasiums_sync_vector_env_across_epi
     assert not np.array_equal(ours[0]["frames"][1], ours[2]["frames"][1])
 
 
+def test_gym_make_vec_without_a_mode_builds_it_and_it_steps_as_gymnasiums_async_default_bit_for_bit():
+    # Gymnasium's async vector env in its default mode (observations through shared memory); the same episode ends
+    # as above.  The vector env's own options (workers) go to it, the rest to each env.
+    envs = gym.make_vec("StarEnv/Scenario-v0", num_envs=3, workers=2, **KWARGS)
+    assert isinstance(envs.unwrapped, SharedMemoryVectorEnv) and len(envs.unwrapped._processes) == 2
+    ours = rollout(envs, 8)
+    theirs = rollout(gym.make_vec("StarEnv/Scenario-v0", num_envs=3, vectorization_mode="async", **KWARGS), 8)
+    assert len(ours) == len(theirs) == 2 + 5 * 8
+    assert all(same(a, b) for a, b in zip(ours, theirs, strict=True))
+    assert [bool(ours[2 + 5 * k + 3].all()) for k in range(8)] == [False, False, True, False] * 2
+    # a bundled id builds its own scenario
+    bundled = gym.make_vec("StarEnv/Paper000-v0", num_envs=2, overrides=SMALL)
+    assert isinstance(bundled.unwrapped, SharedMemoryVectorEnv)
+    reference = gym.make_vec("StarEnv/Paper000-v0", num_envs=2, vectorization_mode="sync", overrides=SMALL)
+    assert same(bundled.reset(seed=5), reference.reset(seed=5))
+    bundled.close()
+    reference.close()
+
+
 def test_infos_can_be_turned_off_and_observations_returned_as_views():
     envs = SharedMemoryVectorEnv.from_id("StarEnv/Scenario-v0", 2, workers=2, infos=False, copy=False, **KWARGS)
     observations, infos = envs.reset(seed=3)

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from starenv.scenario import AGENT_ROLES
 from starenv.sim.gyro import GyroSamples
 from starenv.sim.optics import Camera
-from starenv.sim.sky import StarCatalog
+from starenv.sim.sky import CatalogFile, StarCatalog
 
 # Event levels (StepReport.events), as foxglove.Log numbers them.
 INFO, WARNING, ERROR = 2, 3, 4
@@ -29,11 +29,13 @@ MAX_STARS = 256  # rows of the per-head star lists in an action
 @dataclass(frozen=True)
 class SensorInfo:
     """What a policy knows of the sensor before the first frame: the calibrated cameras, the gyro's sample rate (Hz,
-    from its datasheet) and the catalogue epoch (Julian year) the onboard catalogue is propagated to."""
+    from its datasheet), the catalogue epoch (Julian year) the onboard catalogue is propagated to and the onboard
+    catalogue's file (None: the bundled Hipparcos-2)."""
 
     cameras: list[Camera]
     gyro_rate_hz: float
     epoch: float
+    catalog: CatalogFile | None = None
 
 
 @dataclass
@@ -56,7 +58,8 @@ def step_input(obs: dict, sensor: SensorInfo) -> StepInput:
     n = int(gyro["count"])
     return StepInput(
         images=list(obs["frames"]),
-        frame_valid=np.asarray(obs["frame_valid"], dtype=bool),
+        # a head blinded by the Sun, Moon or Earth delivers a frame no star can be trusted on
+        frame_valid=np.asarray(obs["frame_valid"], dtype=bool) & ~np.asarray(obs.get("blinded", 0), dtype=bool),
         time_s=float(obs["time_s"]),
         exposure_s=float(obs["exposure_s"]),
         gyro=GyroSamples(np.asarray(gyro["t"][:n]), np.asarray(gyro["rate"][:n]), 1.0 / sensor.gyro_rate_hz),

@@ -6,7 +6,9 @@ corrector (optional) maps their positions to the calibrated camera's; the identi
 with the prediction as prior); the solver turns the identified stars of all heads into one attitude.  When fewer
 than two stars are identified (a dropped or smeared-out frame), the predicted attitude is reported instead, so the
 predictor carries the pipeline through; the estimate (solved or predicted) becomes the predictor's new state.  With a
-solved attitude the corrector learns from the identified stars.  The action reports the measured positions
+solved attitude the corrector learns from the identified stars.  The solver takes the catalogue directions
+aberrated for the observation's observer velocity (``correct_aberration``), so that the attitude is not biased by the
+~20 arcsec the sensor's motion moves every star.  The action reports the measured positions
 (``detections_xy``), the corrected ones (``corrected_xy``, the same rows) and the predicted stars where they will be
 measured (the predictor's positions in the calibrated camera mapped back through the corrector).
 
@@ -42,6 +44,7 @@ from starenv.agents.base import (
 )
 from starenv.agents.identify.database import field_mag_limit
 from starenv.scenario import PipelineSpec
+from starenv.sim.ephemeris import aberrate
 from starenv.sim.sky import load_catalog
 
 ONBOARD_MAX_MAG = 7.5
@@ -119,8 +122,10 @@ def load_agent(spec: Any, role: str, *, trust: tuple[str, ...] = (), **kwargs) -
             raise ValueError(f"{role}: agent {spec!r} must be written 'module:Class', e.g. {DEFAULTS['detector']!r}")
         if not _trusted(module_name, trust):
             raise ValueError(f"{role}: agent {spec!r}: module {module_name!r} is outside starenv and not trusted; "
-                             f"trust it explicitly (starenv --trust {module_name.split('.')[0]}, or "
-                             f"trust=[{module_name.split('.')[0]!r}] in Python) if you trust its code")
+                             f"trust it explicitly if you trust its code: add --trust {module_name.split('.')[0]} "
+                             f"after the command (starenv run SCENARIO --trust {module_name.split('.')[0]} ..., "
+                             f"starenv bench BENCH --trust {module_name.split('.')[0]} ...), or pass "
+                             f"trust=[{module_name.split('.')[0]!r}] in Python")
         try:
             spec = getattr(importlib.import_module(module_name), class_name)
         except (ImportError, AttributeError) as exc:
@@ -169,11 +174,12 @@ class Pipeline:
     simulator's sky); None picks the limit that puts ~30 stars in the narrowest head's field (at most Hp 7.5): deep
     enough for tracking, while the lost-in-space database takes its own brighter cut.  ``options`` maps a role to
     constructor options for agents given as class or string; ``trust``: module prefixes outside ``starenv`` that
-    ``"module:Class"`` strings may load agents from (see :func:`load_agent`).
+    ``"module:Class"`` strings may load agents from (see :func:`load_agent`); ``correct_aberration``: whether the
+    solver's reference directions are aberrated for the observer velocity (off only to show the bias it removes).
     """
 
     def __init__(self, catalog_mag_limit: float | None = None, options: dict[str, dict] | None = None, *,
-                 trust: tuple[str, ...] = (), **agents):
+                 trust: tuple[str, ...] = (), correct_aberration: bool = True, **agents):
         unknown = set(agents) - set(ROLE_PROTOCOLS)
         if unknown:
             raise ValueError(f"unknown agent roles {sorted(unknown)}; roles are {', '.join(ROLE_PROTOCOLS)}")
@@ -184,6 +190,7 @@ class Pipeline:
         if self.agents["detector"] is None or self.agents["identifier"] is None or self.agents["solver"] is None:
             raise ValueError("a pipeline needs at least a detector, an identifier and a solver")
         self.catalog_mag_limit = catalog_mag_limit
+        self.correct_aberration = bool(correct_aberration)
         self.catalog = None
         self.sensor: SensorInfo | None = None
         self.report = StepReport()
@@ -213,9 +220,14 @@ class Pipeline:
         self.sensor = sensor
         epoch = sensor.epoch
         limit = self.catalog_mag_limit
+        source = sensor.catalog  # the scenario's onboard catalogue file; None: the bundled Hipparcos-2
+
+        def onboard(mag_limit: float):
+            return load_catalog(mag_limit, epoch) if source is None else source.load(mag_limit, epoch)
+
         if limit is None:
-            limit = min(field_mag_limit(self.cameras, load_catalog(8.0, epoch).magnitude, 30.0), ONBOARD_MAX_MAG)
-        self.catalog = load_catalog(limit, epoch)
+            limit = min(field_mag_limit(self.cameras, onboard(8.0).magnitude, 30.0), ONBOARD_MAX_MAG)
+        self.catalog = onboard(limit)
         for role in ("predictor", "identifier", "corrector"):
             if self.agents[role] is not None:
                 self.agents[role].reset(self.cameras, self.catalog)
@@ -260,7 +272,7 @@ class Pipeline:
             found.append(stars)
         identified = self._timed("identifier", ag["identifier"].identify, found, self.cameras, prediction.attitude,
                                  seen)
-        attitude = self._solve(identified)
+        attitude = self._solve(identified, step.observer_velocity_m_s)
         measured, predicted = identified, prediction.stars
         if corrector is not None:  # back to the image, with the weights the detections were corrected with
             measured = [self._timed("corrector", corrector.uncorrect, s, h, cam)
@@ -286,7 +298,9 @@ class Pipeline:
         report.latency_s["pipeline"] = time.perf_counter() - t_start
         return self._action(attitude, identified, measured, predicted)
 
-    def _solve(self, identified: list[StarMeasurements]) -> Rotation | None:
+    def _solve(self, identified: list[StarMeasurements], velocity_m_s: np.ndarray) -> Rotation | None:
+        """The attitude from the identified stars of all heads; the catalogue directions are made apparent for the
+        observer velocity ``velocity_m_s`` (m/s, ICRS axes) first, unless it is zero or the correction is off."""
         body, inertial = [], []
         for cam, stars in zip(self.cameras, identified, strict=True):
             ok = stars.catalog_id >= 0
@@ -297,8 +311,11 @@ class Pipeline:
             inertial.append(self.catalog.unit[rows])
         if sum(len(b) for b in body) < 2:
             return None
+        references = np.vstack(inertial)
+        if self.correct_aberration and np.any(velocity_m_s):
+            references = aberrate(references, velocity_m_s)
         try:
-            return self._timed("solver", self.agents["solver"].solve, np.vstack(body), np.vstack(inertial), None)
+            return self._timed("solver", self.agents["solver"].solve, np.vstack(body), references, None)
         except ValueError:  # e.g. all identified stars (nearly) parallel: no attitude from this frame
             return None
 

@@ -50,11 +50,10 @@ class RunResult:
 
 def execute(run: RunSpec, recording: str | None = None, recorder: str | None = None) -> RunResult:
     """Run one episode; with a ``recorder`` (``MCAP_RECORDER``) it is recorded to the ``recording`` path."""
-    from starenv import scenario as scenario_mod
     from starenv.env import StarSensorEnv
     from starenv.episode import run_episode
 
-    scenario = scenario_mod.load(run.scenario_data(), run.overrides)
+    scenario = run.load_scenario()
     env = StarSensorEnv(scenario.data)
     pipeline = run.pipeline.build(scenario, run.trust)
     observers = []

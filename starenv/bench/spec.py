@@ -51,6 +51,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -125,10 +126,13 @@ class RunSpec:
     steps: int
     record: bool = True  # whether the bench's recorder (if any) records this run; not part of its identity
     trust: tuple[str, ...] = ()  # module prefixes its agents may come from (the caller's, never the file's)
+    files_sha256: tuple[tuple[str, str], ...] = ()  # (dotted key, SHA-256) of each data file the scenario names
 
     def identity(self) -> dict:
-        """What the run's results depend on (the scenario by the SHA-256 of its text)."""
-        return {
+        """What the run's results depend on (the scenario by the SHA-256 of its text and of each data file it
+        names: editing a star catalogue or attitude file makes a new run, never a stale resumed one)."""
+        files = {"files_sha256": dict(self.files_sha256)} if self.files_sha256 else {}
+        return {**files,
             "format": FORMAT,
             "scenario": self.scenario,
             "scenario_sha256": hashlib.sha256(self.scenario_text.encode()).hexdigest(),
@@ -154,6 +158,18 @@ class RunSpec:
         data = tomllib.loads(self.scenario_text)
         data.setdefault("name", self.scenario)
         return data
+
+    def load_scenario(self):
+        """The run's scenario, its data files read from the scenario file's folder; a data file whose bytes changed
+        since the bench was loaded is refused (the run's identity names the bytes it was loaded with)."""
+        scenario = scenario_mod.load(self.scenario_data(), self.overrides, base=Path(self.scenario_file).parent)
+        if self.files_sha256:
+            now, paths = scenario_mod.file_digests(scenario), scenario_mod.named_files(scenario.data)
+            for key, digest in self.files_sha256:
+                if now.get(key) != digest:
+                    raise BenchError(f"{self.scenario_file}: {key}: the file {paths.get(key)} changed since the bench "
+                                     "was loaded; load the bench again")
+        return scenario
 
 
 @dataclass
@@ -335,9 +351,10 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
                 overrides[sweep.key] = sweep.override(value)
             where = g.where("sweep") if sweep is not None else g.where("set")
             scenario = None
-            if check or seeds is None or steps is None:
+            if check or seeds is None or steps is None or _names_files(text_sc, overrides):
                 try:
                     scenario = scenario_mod.load(path, overrides)
+                    digests = tuple(scenario_mod.file_digests(scenario).items())
                 except scenario_mod.ScenarioError as exc:
                     shown = f" = {value!r}" if sweep is not None else ""
                     raise BenchError(f"{source}: {where}{shown}: {exc}") from exc
@@ -357,6 +374,7 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
                         sweep.axis if sweep else None, pipelines[n], int(seed),
                         int(steps if steps is not None else scenario.n_steps - 1),
                         record and (recorded_seeds is None or int(seed) in recorded_seeds), trust,
+                        digests if scenario is not None else (),
                     ))
     ids = {}
     for r in runs:
@@ -365,6 +383,13 @@ def parse_bench(text: str, source: str = "<bench>", bench_dir: Path | None = Non
                              f" seed {r.seed}, overrides {r.overrides})")
         ids[r.run_id] = r
     return Bench(name, description, source, runs, recorder, recorded_seeds)
+
+
+def _names_files(text: str, overrides: dict) -> bool:
+    """Whether a scenario's text or overrides may name a data file (then it is loaded to hash them)."""
+    keys = "|".join(scenario_mod.FILE_KEYS)
+    return bool(re.search(rf"(^|[{{,\s])({keys})\s*=", text, re.MULTILINE)) or any(
+        str(k).rsplit(".", 1)[-1] in scenario_mod.FILE_KEYS for k in overrides)
 
 
 def load_bench(bench: str | Path, check: bool = True, trust: tuple[str, ...] = (), seeds: int | None = None) -> Bench:

@@ -55,10 +55,10 @@ def frame_pairs(scenario: Scenario, seed: int, index: int, centroid_noise_px: fl
 def orbit_pairs(scenario: Scenario, seed: int, index: int, centroid_noise_px: float = CENTROID_NOISE_PX,
                 head: int = 0) -> StarPairs:
     """The pairs of frame ``index`` along the scenario's trajectory (``t = index / frame_rate_hz``), noise from
-    ``seed``."""
+    ``seed``; a head whose temperature moves its optics images through its camera at ``t``."""
     rng = _rng(seed, index)
-    attitude = scenario.trajectory.attitude(index / scenario.frame_rate_hz)
-    return attitude_pairs(scenario, attitude, rng, centroid_noise_px, head)
+    t = index / scenario.frame_rate_hz
+    return attitude_pairs(scenario, scenario.trajectory.attitude(t), rng, centroid_noise_px, head, time_s=t)
 
 
 def _rng(seed: int, index: int) -> np.random.Generator:
@@ -68,12 +68,15 @@ def _rng(seed: int, index: int) -> np.random.Generator:
 
 
 def attitude_pairs(scenario: Scenario, attitude: Rotation, rng: np.random.Generator, centroid_noise_px: float,
-                   head: int = 0) -> StarPairs:
-    """The pairs of head ``head`` at ``attitude`` (inertial -> body), measurement noise from ``rng``."""
+                   head: int = 0, time_s: float | None = None) -> StarPairs:
+    """The pairs of head ``head`` at ``attitude`` (inertial -> body), measurement noise from ``rng``; at ``time_s``
+    (s) the head's temperature (its ``thermal`` model) sets the true camera, None: the camera as given."""
     noise = checks.non_negative("centroid_noise_px", centroid_noise_px, unit="px")
     checks.integer("head", head, 0, len(scenario.heads) - 1)
     spec = scenario.heads[head]
     true_cam, cal_cam = spec.camera, spec.calibrated
+    if time_s is not None and spec.thermal is not None:
+        true_cam = spec.thermal.camera(true_cam, time_s)
     catalog = load_catalog(scenario.mag_limit, scenario.epoch)
     to_cam = true_cam.inertial_to_camera(attitude)
     rows = catalog.cone(to_cam.inv().apply([0.0, 0.0, 1.0]), min(true_cam.half_diagonal * 1.05, np.pi / 2))

@@ -5,7 +5,16 @@ Sample ``i`` of a spec is a pure function of (spec, ``i``): ``np.random.SeedSequ
 gives the stream of the draws (attitude, rates, randomised overrides, star edits, in that order) and the sensor's
 noise seed.  The scenario's motion is replaced by a constant rate, and its initial attitude chosen so that the drawn
 attitude holds at head 0's mid-exposure of frame 0 (for ``main_star``: the navigation star sits on the boresight at
-mid-exposure, its trail centred on the image centre).  Rates are drawn in head 0's camera frame (+Z boresight):
+mid-exposure, its trail centred on the image centre; with ``pointing.offset_deg`` the boresight is drawn about it
+instead, uniformly in the cap of that radius among the directions whose nearest navigation star it is, so the label
+is the navigation star nearest the image centre, the paper's main star).  A ``main_star`` image is the frame as the
+network reads it (:func:`starenv.datasets.preprocess.network_input`: area-resized to ``input_size``, background
+subtracted).
+
+The scenario is parsed and validated once per process and spec (:func:`context`); a sample replaces only its motion
+(:func:`starenv.scenario.with_motion`) and reloads the scenario only when the spec randomises other keys.
+
+Rates are drawn in head 0's camera frame (+Z boresight):
 ``(r cos a, r sin a, roll rate)`` with ``r`` the two-axis resultant and ``a`` the smear direction, and turned into
 the body frame through the mounting.
 
@@ -18,11 +27,14 @@ by a Gaussian of ``position_sigma_px`` px per axis at head 0's plate scale; magn
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from starenv import scenario as scenario_mod
 from starenv.datasets.pairs import attitude_pairs
+from starenv.datasets.preprocess import network_input
 from starenv.datasets.smear import sharp_reference
 from starenv.datasets.spec import VARIANTS, DatasetSpec
 from starenv.sim.conventions import DEG, frame_span_s, pointing, radec_to_unit, unit_to_radec
@@ -47,12 +59,69 @@ def _navigation(mag_limit: float, epoch: float, ra_deg: float, dec_deg: float, r
     return cat.hip[rows].copy(), cat.unit[rows].copy()
 
 
+@dataclass(frozen=True)
+class SampleContext:
+    """What every sample of a spec shares, built once per process: the scenario with the spec's fixed overrides
+    (parsed and validated), the classes (HIP, ICRS units) and every navigation star of the sky (Hp <=
+    ``pointing.mag_limit``, for the nearest-star rule of off-centre boresights)."""
+
+    scenario: scenario_mod.Scenario
+    classes_hip: np.ndarray
+    classes_unit: np.ndarray
+    sky_hip: np.ndarray
+    sky_tree: object  # scipy cKDTree of the sky's units
+
+
+_CONTEXTS: dict[str, SampleContext] = {}
+MAX_CONTEXTS = 4  # specs whose context one process keeps (a build uses one; tests and benchmarks a few)
+
+
+def context(spec: DatasetSpec) -> SampleContext:
+    """The :class:`SampleContext` of ``spec`` (cached by the spec's digest in this process)."""
+    key = spec.digest
+    if key not in _CONTEXTS:
+        sc = spec.load_scenario()
+        p = spec.pointing
+        hip, unit = _navigation(p.mag_limit, sc.epoch, p.center_ra_deg, p.center_dec_deg, p.radius_deg)
+        sky = load_catalog(p.mag_limit, sc.epoch)
+        while len(_CONTEXTS) >= MAX_CONTEXTS:
+            _CONTEXTS.pop(next(iter(_CONTEXTS)))
+        _CONTEXTS[key] = SampleContext(sc, hip, unit, sky.hip, sky.tree)
+    return _CONTEXTS[key]
+
+
 def navigation_stars(spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray]:
     """The classes of a ``main_star`` spec: HIP numbers (sorted; the label is the index) and ICRS unit vectors of the
     stars with Hp <= ``pointing.mag_limit`` within ``pointing.radius_deg`` of the pointing centre."""
-    p = spec.pointing
-    epoch = spec.load_scenario().epoch
-    return _navigation(p.mag_limit, epoch, p.center_ra_deg, p.center_dec_deg, p.radius_deg)
+    ctx = context(spec)
+    return ctx.classes_hip, ctx.classes_unit
+
+
+OFFSET_TRIES = 64  # boresights drawn at once about the main star; the first whose nearest navigation star it is wins
+MAX_OFFSET_ROUNDS = 1000  # then the boresight stays on the star (a cell smaller than any drawn cap allows)
+
+
+def _off_centre(ctx: SampleContext, main: int, offset_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """A boresight (ICRS unit) uniform in the cap of ``offset_deg`` about class ``main`` among the directions whose
+    nearest navigation star is that star (rejection: ``OFFSET_TRIES`` cap draws a round)."""
+    star = ctx.classes_unit[main]
+    e1 = np.cross([0.0, 0.0, 1.0], star)
+    if np.linalg.norm(e1) < 1e-9:
+        e1 = np.array([1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(star, e1)
+    hip = ctx.classes_hip[main]
+    for _ in range(MAX_OFFSET_ROUNDS):
+        u = rng.random((OFFSET_TRIES, 2))
+        cos_t = 1.0 - u[:, 0] * (1.0 - np.cos(offset_deg * DEG))  # uniform in the cap's solid angle
+        sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t**2))
+        phi = 2.0 * np.pi * u[:, 1]
+        axes = cos_t[:, None] * star + sin_t[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+        nearest = ctx.sky_hip[ctx.sky_tree.query(axes)[1]]
+        hit = np.flatnonzero(nearest == hip)
+        if len(hit):
+            return axes[hit[0]] / np.linalg.norm(axes[hit[0]])
+    return star
 
 
 def _initial_pointing(att_mid: Rotation, rate_body: np.ndarray, t_mid: float, mounting: Rotation) -> dict:
@@ -74,15 +143,16 @@ def draw(spec: DatasetSpec, index: int) -> dict:
     (scenario overrides) and ``seeds`` (the two SeedSequences: draws, sensor noise)."""
     seeds = np.random.SeedSequence([spec.seed, index]).spawn(2)
     rng = np.random.default_rng(seeds[0])
-    sc = spec.load_scenario()
-    mounting = sc.heads[0].camera.mounting
+    ctx = context(spec)
+    mounting = ctx.scenario.heads[0].camera.mounting
     p, r = spec.pointing, spec.rates
     if p.mode == "main_star":
-        hip, unit = navigation_stars(spec)
+        hip, unit = ctx.classes_hip, ctx.classes_unit
         main = int(rng.integers(len(hip)))
         step = p.roll_step_deg
         roll = float(rng.integers(round(360.0 / step))) * step if step > 0 else float(rng.uniform(0.0, 360.0))
-        ra, dec = unit_to_radec(unit[main])
+        boresight = unit[main] if p.offset_deg == 0.0 else _off_centre(ctx, main, p.offset_deg, rng)
+        ra, dec = unit_to_radec(boresight)
         cam = pointing(float(ra), float(dec), roll * DEG)
     else:
         main = -1
@@ -101,17 +171,21 @@ def draw(spec: DatasetSpec, index: int) -> dict:
             "changed": changed, "randomized": randomized, "rng": rng, "sensor_seed": seeds[1]}
 
 
-def render(spec: DatasetSpec, params: dict) -> tuple[StarSensor, object]:
-    """Render frame 0 of head 0 for drawn ``params`` (see :func:`draw`): the sensor and its :class:`Frame`."""
-    rng = params["rng"]
-    base = spec.load_scenario(params["randomized"])
+def motion_table(base: scenario_mod.Scenario, params: dict) -> dict:
+    """The scenario ``[motion]`` table of drawn ``params`` (see :func:`draw`): their constant rate, and the initial
+    attitude that puts ``params["attitude"]`` at head 0's mid-exposure of frame 0."""
     head = base.heads[0]
     cam = head.camera
     t_mid = 0.5 * frame_span_s(base.exposure_s, head.detector.line_time_s, cam.height)
-    att = params["attitude"]
     rate_body = cam.mounting.inv().apply(np.asarray(params["rate_cam_dps"], dtype=np.float64) * DEG)
-    motion = _initial_pointing(att, rate_body, t_mid, cam.mounting)
-    sc = spec.load_scenario({**params["randomized"], "motion": motion})
+    return _initial_pointing(params["attitude"], rate_body, t_mid, cam.mounting)
+
+
+def render(spec: DatasetSpec, params: dict) -> tuple[StarSensor, object]:
+    """Render frame 0 of head 0 for drawn ``params`` (see :func:`draw`): the sensor and its :class:`Frame`."""
+    rng = params["rng"]
+    base = spec.load_scenario(params["randomized"]) if params["randomized"] else context(spec).scenario
+    sc = scenario_mod.with_motion(base, motion_table(base, params))
     catalog = _edited_sky(spec, sc, params, rng)
     sensor = StarSensor(sc, catalog=catalog)
     sensor.reset(params["sensor_seed"])
@@ -186,8 +260,8 @@ def sample(spec: DatasetSpec, index: int) -> dict[str, np.ndarray]:
                 "exposure_s": np.float64(sensor.scenario.exposure_s), **common}
     if spec.kind == "main_star":
         hip = navigation_stars(spec)[0]
-        return {"image": head.image, "label": np.int32(params["main"]), "hip": np.int64(hip[params["main"]]),
-                **common}
+        return {"image": network_input(head.image, spec.input_size), "label": np.int32(params["main"]),
+                "hip": np.int64(hip[params["main"]]), **common}
     truth = head.truth
     keep = truth.detectable
     return {"xy": truth.xy_centroid[keep].astype(np.float64), "catalog_id": truth.catalog_id[keep].astype(np.int64),

@@ -22,6 +22,7 @@ import json
 import math
 import operator
 import os
+import struct
 import sys
 import zipfile
 from pathlib import Path
@@ -36,6 +37,8 @@ from starenv.parallel import local_executor, ray_executor
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
 INDEX = "shards.json"  # {"spec_digest": ..., "sha256": {shard file name: SHA-256 of its bytes}}
 MAX_INDEX_BYTES = 1 << 26  # a name and a 64-digit hash per shard: far more shards than any spec asks for
+_LOCAL_HEADER = struct.Struct("<4s5H3L2H")  # a zip member's local file header, up to its name (APPNOTE 4.3.7)
+_NPY_HEADER_MAX = 1 << 16  # bytes read for an .npy header: numpy refuses headers over 10 000 bytes
 
 
 def _version() -> str:
@@ -64,27 +67,66 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> str:
     return hashlib.sha256(data.getvalue()).hexdigest()
 
 
-def read_arrays(data: bytes, names: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """The arrays ``names`` of the .npz bytes ``data`` (as :func:`write_npz` writes them), each member's header
-    checked before anything is allocated: stored uncompressed, a plain numeric dtype, and no more bytes than the
-    member holds.  Anything else is a ValueError."""
+class _ViewFile(io.RawIOBase):
+    """A read-only, seekable file over a buffer, without the copy ``io.BytesIO`` makes (for the zip directory)."""
+
+    def __init__(self, view: memoryview):
+        super().__init__()
+        self.view, self.pos = view, 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self.pos, io.SEEK_END: len(self.view)}[whence]
+        if base + offset < 0:
+            raise OSError("seek before the start")
+        self.pos = base + offset
+        return self.pos
+
+    def readinto(self, buffer) -> int:
+        chunk = self.view[self.pos:self.pos + len(buffer)]
+        buffer[:len(chunk)] = chunk
+        self.pos += len(chunk)
+        return len(chunk)
+
+
+def read_arrays(data: bytes | bytearray, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The arrays ``names`` of the .npz bytes ``data`` (as :func:`write_npz` writes them), each a view into ``data``
+    (no copy; writable when ``data`` is a bytearray).  Each member's headers are checked before any view is made:
+    stored uncompressed, inside ``data``, a plain numeric dtype in C order, and exactly the bytes its shape needs.
+    Anything else is a ValueError.  Integrity is the caller's SHA-256 check, not the zip's CRC."""
     out = {}
+    view = memoryview(data)
     try:
-        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        with zipfile.ZipFile(io.BufferedReader(_ViewFile(view))) as zf:
             for name in names:
                 info = zf.getinfo(f"{name}.npy")
-                if info.compress_type != zipfile.ZIP_STORED or info.file_size > len(data):
+                local = info.header_offset
+                fixed = bytes(view[local:local + _LOCAL_HEADER.size])
+                if (info.compress_type != zipfile.ZIP_STORED or info.compress_size != info.file_size
+                        or len(fixed) != _LOCAL_HEADER.size or fixed[:4] != b"PK\x03\x04"):
                     raise ValueError(f"{name}: not stored as write_npz stores it")
-                with zf.open(info) as f:
-                    version = np.lib.format.read_magic(f)
-                    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-                        np.lib.format.read_array_header_2_0
-                    shape, _, dtype = read_header(f)
-                    if dtype.kind not in "biuf" or math.prod(shape) * dtype.itemsize > info.file_size:
-                        raise ValueError(f"{name}: a header of {shape} {dtype} in {info.file_size} bytes")
-                    f.seek(0)
-                    out[name] = np.lib.format.read_array(f, allow_pickle=False)
-    except (KeyError, OSError, EOFError, zipfile.BadZipFile, RuntimeError, NotImplementedError) as exc:
+                name_len, extra_len = _LOCAL_HEADER.unpack(fixed)[-2:]
+                start = local + _LOCAL_HEADER.size + name_len + extra_len
+                if start + info.file_size > len(data):
+                    raise ValueError(f"{name}: {info.file_size} bytes from offset {start} run past the file")
+                head = io.BytesIO(bytes(view[start:start + min(info.file_size, _NPY_HEADER_MAX)]))
+                version = np.lib.format.read_magic(head)
+                read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                    np.lib.format.read_array_header_2_0
+                shape, fortran, dtype = read_header(head)
+                body = info.file_size - head.tell()
+                if dtype.kind not in "biuf" or fortran or math.prod(shape) * dtype.itemsize != body:
+                    raise ValueError(f"{name}: a header of {shape} {dtype} for {body} bytes")
+                out[name] = np.frombuffer(view, dtype, math.prod(shape), start + head.tell()).reshape(shape)
+    except (KeyError, OSError, EOFError, zipfile.BadZipFile, RuntimeError, NotImplementedError, struct.error) as exc:
         raise ValueError(f"not a shard as write_npz writes it ({type(exc).__name__}: {exc})") from exc
     return out
 

@@ -13,6 +13,9 @@ the top level is optional)::
     samples = 16000               # sample indices 0 .. samples-1
     shard_size = 500              # samples per shard file (the last shard may be shorter)
     seed = 0                      # sample i draws from np.random.SeedSequence([seed, i])
+    input_size = 256              # main_star: the image stored is the frame area-resized to input_size^2 px with its
+                                  # background (median) subtracted, the network's input (datasets/preprocess.py);
+                                  # default: the largest multiple of 16 up to 256 that divides both frame sides
 
     [overrides]                   # fixed scenario overrides, dotted key paths (as `starenv run --set`)
     "heads.0.width" = 128
@@ -28,6 +31,9 @@ the top level is optional)::
     center_dec_deg = -5.4
     radius_deg = 180.0
     roll_step_deg = 0.0           # 0: roll uniform in [0, 360); > 0: a multiple of the step (paper 002: 30)
+    offset_deg = 0.0              # main_star: the boresight uniform within offset_deg of the main star, among the
+                                  # directions whose nearest navigation star (Hp <= mag_limit, whole sky) it is
+                                  # (the label: the navigation star nearest the image centre); 0: on the star
 
     [rates]                       # head 0's camera frame: two-axis (in-plane) magnitude, its direction, roll rate
     two_axis_dps = [0.0, 2.0, 4.0, 6.0, 8.0]    # resultant |(wx, wy)| drawn from this list ...
@@ -54,6 +60,8 @@ the format version; it travels in every shard and in trained weights' manifests.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -82,6 +90,7 @@ class PointingSpec:
     center_dec_deg: float = 0.0
     radius_deg: float = 180.0
     roll_step_deg: float = 0.0
+    offset_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -130,6 +139,7 @@ class DatasetSpec:
     pairs: PairsSpec = PairsSpec()
     patches: PatchSpec = PatchSpec()
     source: str = "<dataset>"
+    input_size: int | None = None
 
     @property
     def n_shards(self) -> int:
@@ -143,14 +153,18 @@ class DatasetSpec:
         """Everything that decides the samples' bytes (not the file it came from; not the tables of other kinds)."""
         d = asdict(self)
         d.pop("source")
+        if self.input_size is None:
+            d.pop("input_size")
+        if self.pointing.offset_deg == 0.0:
+            d["pointing"].pop("offset_deg")
         for table, kind in (("pairs", "position_pairs"), ("patches", "smear_pairs")):
             if self.kind != kind:
                 d.pop(table)
         d["format_version"] = FORMAT_VERSION
         return d
 
-    @property
-    def digest(self) -> str:
+    @functools.cached_property
+    def digest(self) -> str:  # cached: every sample's context is looked up by it
         text = json.dumps(self.identity(), sort_keys=True, default=list)
         return hashlib.sha256(text.encode()).hexdigest()
 
@@ -158,6 +172,8 @@ class DatasetSpec:
         """A dict that :func:`load_spec` turns back into this spec (the scenario inlined as its text)."""
         d = asdict(self)
         d.pop("source")
+        if self.input_size is None:
+            d.pop("input_size")
         return d
 
     def load_scenario(self, extra: dict[str, Any] | None = None) -> scenario_mod.Scenario:
@@ -183,6 +199,13 @@ def _unset_dropped(data: dict) -> dict:
         if isinstance(out.get(key), dict):
             out[key] = {k: v for k, v in out[key].items() if v is not None}
     return out
+
+
+def default_input_size(width: int, height: int) -> int:
+    """The largest multiple of 16 up to 256 dividing both sides of a ``width`` x ``height`` px frame (the network
+    input of a ``main_star`` spec that names none); their greatest common divisor when none does."""
+    common = math.gcd(width, height)
+    return next((d for d in range(min(common, 256), 0, -1) if common % d == 0 and d % 16 == 0), common)
 
 
 def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec:
@@ -216,6 +239,7 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
     samples = top.number("samples", REQUIRED, 1, 10**9, integer=True)
     shard_size = top.number("shard_size", 1000, 1, 10**6, integer=True)
     seed = top.number("seed", 0, 0, 2**63 - 1, integer=True)
+    input_size = top.number("input_size", None, 1, 1024, integer=True) if kind == "main_star" else None
     overrides = top.get("overrides", {})
     if not isinstance(overrides, dict):
         top.fail("overrides", "a table of dotted scenario keys", overrides)
@@ -234,6 +258,7 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
         center_dec_deg=pt.number("center_dec_deg", 0.0, -90.0, 90.0),
         radius_deg=pt.number("radius_deg", 180.0, 0.1, 180.0),
         roll_step_deg=pt.number("roll_step_deg", 0.0, 0.0, 360.0),
+        offset_deg=pt.number("offset_deg", 0.0, 0.0, 90.0),
     )
     pt.finish()
     if kind == "main_star" and pointing.mode != "main_star":
@@ -277,9 +302,15 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
     pa.finish()
     top.finish()
     spec = DatasetSpec(name, kind, scenario, scenario_text, samples, shard_size, seed, dict(overrides), randomize,
-                       pointing, rates, stars, pairs, patches, source)
+                       pointing, rates, stars, pairs, patches, source, input_size)
     try:  # the scenario with its fixed overrides and the per-sample ones at their low ends must load
-        spec.load_scenario({k: lo for k, (lo, _) in randomize.items()})
+        camera = spec.load_scenario({k: lo for k, (lo, _) in randomize.items()}).heads[0].camera
     except scenario_mod.ScenarioError as exc:
         raise DatasetError(f"{source}: scenario/overrides/randomize: {exc}") from exc
+    if kind == "main_star" and input_size is None:
+        input_size = default_input_size(camera.width, camera.height)
+        spec = dataclasses.replace(spec, input_size=input_size)
+    if input_size is not None and (camera.width % input_size or camera.height % input_size):
+        top.fail("input_size", f"a size that divides head 0's {camera.width} x {camera.height} px frame (the frame is "
+                 f"area-resized in whole blocks)", input_size)
     return spec

@@ -33,7 +33,8 @@ Both paths log each step through one :class:`Review`, so they produce the same e
   from the attitude ICRS -> body (conjugated: arrows are body directions written in ICRS); ``attitude/stars/truth``:
   the true stars' trail centroids seen through the calibrated cameras at the true attitude, and
   ``attitude/stars/detections``: the detections at the estimated attitude (their marker classes), on the unit
-  sphere, labelled on hover;
+  sphere, labelled on hover; ``attitude/bodies`` (a scenario with ``[sky] bodies``): the Sun, the Moon, the planets
+  and, from an orbit, the Earth's centre on the unit sphere, seen from the spacecraft, each labelled;
 * ``filter/...`` (a fusion filter's pipeline only), per body axis ``x``, ``y``, ``z``:
   ``filter/attitude_error_arcsec/{axis}/{error,plus_3sigma,minus_3sigma}`` (the rotation vector of
   ``A_est A_true^T`` against the filter's own 3-sigma), ``filter/bias_error_deg_hr/{axis}/{error,plus_3sigma,
@@ -67,6 +68,7 @@ from starenv import metrics
 from starenv import scenario as scenario_mod
 from starenv.agents.base import AttitudeFilter
 from starenv.record.step import ERROR, INFO, WARNING, FilterState, Stars2D, StepData, from_step_log
+from starenv.sim.bodies import body_directions
 
 APPLICATION_ID = "starenv"
 PIXEL_ORIGIN = 0.5
@@ -75,6 +77,7 @@ AXIS_COLORS = np.array([(230, 40, 40), (40, 200, 40), (60, 90, 255)])  # x, y, z
 AXES = {"x": 0, "y": 1, "z": 2, "roll": 2}
 UNIT_WORDS = {"arcsec", "px", "ms", "db", "deg", "hr", "error"}  # left out of a series' name: its panel states the unit
 MAGNITUDE_COLOR = (170, 170, 170)  # an arcsec error that is an angle, not about one axis
+BODY_COLORS = {"sun": (255, 220, 40), "moon": (235, 235, 235), "earth": (70, 130, 255), "planet": (255, 150, 60)}
 AXIS_NAMES = ("red", "green", "blue")
 # The other series' colours, in a panel's order: Okabe and Ito's colour-blind-safe set (white for its black, on the
 # viewer's dark background), named in the legend panel.
@@ -438,8 +441,9 @@ class Review:
     data (module docstring).  ``cameras``: the heads' calibrated cameras (their sizes and, for the 3-D view,
     projections); ``with_filter``: lay out a fusion filter's panels."""
 
-    def __init__(self, rec, cameras, with_filter: bool = False):
-        self.rec, self.cameras, self.with_filter = rec, list(cameras), with_filter
+    def __init__(self, rec, cameras, with_filter: bool = False, bodies=None):
+        """``bodies``: :func:`starenv.sim.bodies.body_directions` of the scenario (None: no bodies drawn)."""
+        self.rec, self.cameras, self.with_filter, self.bodies = rec, list(cameras), with_filter, bodies
         self.sizes = [(int(c.width), int(c.height)) for c in self.cameras]
         self.boresights = np.array([c.mounting.inv().apply([0.0, 0.0, 1.0]) for c in self.cameras]).reshape(-1, 3)
         self._laid_out = False
@@ -633,6 +637,10 @@ class Review:
         else:
             rec.log("attitude/estimate", rr.Clear(recursive=False))
             rec.log("attitude/stars/detections", rr.Clear(recursive=False))
+        if self.bodies is not None:
+            names, unit = self.bodies(data.time_ns * 1e-9)
+            rec.log("attitude/bodies", rr.Points3D(unit, labels=names, show_labels=True, radii=-6.0,
+                                                   colors=[BODY_COLORS.get(n, BODY_COLORS["planet"]) for n in names]))
 
 
 def _log_filter(rec, state: FilterState, attitude_true: np.ndarray) -> None:
@@ -669,8 +677,9 @@ def mcap_to_rrd(mcap_path: str | os.PathLike, rrd_path: str | os.PathLike, on_st
     name = f"{meta['starenv.scenario']['name']} seed {meta['starenv.run']['seed']}"
     rrd_path = Path(rrd_path)
     rec = open_stream(rrd_path, str(uuid.UUID(bytes=digest.digest()[:16])), name)
-    cameras = [h.calibrated for h in scenario_mod.load(tomllib.loads(meta["starenv.scenario"]["toml"])).heads]
-    review = Review(rec, cameras, with_filter="/filter" in topics(mcap_path))
+    scenario = scenario_mod.load(tomllib.loads(meta["starenv.scenario"]["toml"]))
+    cameras = [h.calibrated for h in scenario.heads]
+    review = Review(rec, cameras, with_filter="/filter" in topics(mcap_path), bodies=body_directions(scenario))
     for data in read_steps(mcap_path):
         review.step(data)
         if on_step is not None:
@@ -701,7 +710,7 @@ class RerunRecorder:
         rec_id = str(uuid.UUID(bytes=hashlib.sha256(key).digest()[:16]))
         with_filter = isinstance(getattr(pipeline, "agents", {}).get("predictor"), AttitudeFilter)
         self._rec = open_stream(self.path, rec_id, f"{sc.name} seed {seed}")
-        self._review = Review(self._rec, env.unwrapped.cameras, with_filter)
+        self._review = Review(self._rec, env.unwrapped.cameras, with_filter, body_directions(sc))
 
     def step(self, log) -> None:
         data = from_step_log(log, self._sizes)

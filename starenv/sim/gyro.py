@@ -179,11 +179,14 @@ class Gyro:
         """Timestamp (s) of the last delivered sample, or of sample 0 (``time_offset_s``) before the first one."""
         return self._samples_delivered / self.spec.rate_hz + self.spec.time_offset_s
 
-    def sample_until(self, body_rate: Callable[[np.ndarray], np.ndarray], t_end: float) -> GyroSamples:
+    def sample_until(self, body_rate: Callable[[np.ndarray], np.ndarray], t_end: float,
+                     mean_rate: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> GyroSamples:
         """All samples with timestamp in (last delivered, ``t_end``] (s).
 
         ``body_rate(t)`` maps an (m,) array of times (s) to the true body rate (m, 3) rad/s in the body frame (a (3,)
-        result is broadcast as a constant rate).
+        result is broadcast as a constant rate); each sample's mean over its interval is a 5-point Gauss-Legendre
+        rule, unless ``mean_rate(t0, t1)`` gives the exact mean (m, 3) rad/s over intervals (t0, t1] (a motion
+        whose rate jumps, :class:`starenv.sim.attitude_files.AttitudeHistory`).
         """
         t_end = float(checks.finite("t_end", t_end, shape=()))
         rate_hz, offset = self.spec.rate_hz, self.spec.time_offset_s
@@ -193,7 +196,7 @@ class Gyro:
         while last_index > self._samples_delivered and last_index / rate_hz + offset > t_end:
             last_index -= 1
         blocks = [
-            self._sample_block(body_rate, first, min(first + _BLOCK_SAMPLES, last_index + 1))
+            self._sample_block(body_rate, first, min(first + _BLOCK_SAMPLES, last_index + 1), mean_rate)
             for first in range(self._samples_delivered + 1, last_index + 1, _BLOCK_SAMPLES)
         ]
         self._samples_delivered = last_index
@@ -202,15 +205,18 @@ class Gyro:
         return GyroSamples(t=np.concatenate([b.t for b in blocks]), rate=np.concatenate([b.rate for b in blocks]),
                            dt=self.spec.sample_interval_s)
 
-    def _sample_block(self, body_rate, first: int, stop: int) -> GyroSamples:
+    def _sample_block(self, body_rate, first: int, stop: int, exact_mean=None) -> GyroSamples:
         """Samples with indices ``first .. stop - 1``, advancing the error state."""
         rate_hz, offset, dt = self.spec.rate_hz, self.spec.time_offset_s, self.spec.sample_interval_s
         index = np.arange(first, stop, dtype=np.float64)
         n = index.size
         centres = (index - 0.5) / rate_hz + offset
-        node_times = (centres[:, None] + (0.5 * dt) * _GL_NODES[None, :]).ravel()
-        true_rate = _evaluate_body_rate(body_rate, node_times).reshape(n, _GL_NODES.size, 3)
-        mean_rate = np.einsum("m,nmc->nc", _GL_WEIGHTS, true_rate)
+        if exact_mean is not None:
+            mean_rate = np.asarray(exact_mean((index - 1.0) / rate_hz + offset, index / rate_hz + offset))
+        else:
+            node_times = (centres[:, None] + (0.5 * dt) * _GL_NODES[None, :]).ravel()
+            true_rate = _evaluate_body_rate(body_rate, node_times).reshape(n, _GL_NODES.size, 3)
+            mean_rate = np.einsum("m,nmc->nc", _GL_WEIGHTS, true_rate)
 
         normals = self._rng.standard_normal((n, _NOISE_SOURCES, 3))
         rrw_bias, self._rrw_state = lfilter([self._rrw_step_rad_s], [1.0, -1.0], normals[:, 1], axis=0,

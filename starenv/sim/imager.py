@@ -33,6 +33,12 @@ class DetectorSpec:
     process of ``cosmic_ray_rate_per_cm2_s`` over the sensor area during the exposure; each deposits a log-normal
     charge (median ``cosmic_ray_electrons``, sigma 0.5 in ln) along a straight track of random direction whose
     length is exponential with mean ``cosmic_ray_track_px``.  ``line_time_s > 0`` makes a rolling shutter.
+
+    Off unless set: ``blooming`` spills the charge a pixel holds above ``full_well_e`` along its column
+    (:func:`bloom_columns`); ``prnu_fraction`` is the relative spread (1 sigma) of each pixel's response to light
+    and ``dsnu_fraction`` that of its dark current, both fixed patterns drawn once per sensor (after the hot pixels,
+    from the same stream); a head's :class:`~starenv.sim.thermal.Thermal` scales the dark current (uniform, hot
+    pixels and DSNU) with the sensor temperature.
     """
 
     read_noise_e: float = 8.0
@@ -47,6 +53,9 @@ class DetectorSpec:
     cosmic_ray_electrons: float = 2000.0
     cosmic_ray_track_px: float = 2.0
     line_time_s: float = 0.0
+    blooming: bool = False
+    prnu_fraction: float = 0.0
+    dsnu_fraction: float = 0.0
 
     def __post_init__(self):
         checks.in_range("read_noise_e", self.read_noise_e, 0.0, 1000.0, unit="e-")
@@ -61,6 +70,10 @@ class DetectorSpec:
         checks.in_range("cosmic_ray_electrons", self.cosmic_ray_electrons, 0.0, 1e8, unit="e-")
         checks.in_range("cosmic_ray_track_px", self.cosmic_ray_track_px, 0.0, 1e3, unit="px")
         checks.in_range("line_time_s", self.line_time_s, 0.0, 1e-3, unit="s")
+        if not isinstance(self.blooming, bool):
+            raise ValueError(f"blooming must be true or false, got {self.blooming!r}")
+        checks.in_range("prnu_fraction", self.prnu_fraction, 0.0, 0.2)
+        checks.in_range("dsnu_fraction", self.dsnu_fraction, 0.0, 1.0)
 
     @property
     def max_dn(self) -> int:
@@ -82,6 +95,23 @@ class Detector:
         self.spec = spec
         self.shape = (int(height), int(width))
         self.pixel_area_cm2 = (pixel_pitch_m * 100.0) ** 2
+        self.set_background(background_e_per_px_s)
+        n_pix = self.shape[0] * self.shape[1]
+        n_hot = int(fixed_pattern_rng.binomial(n_pix, spec.hot_pixel_fraction)) if spec.hot_pixel_fraction else 0
+        self.hot_index = np.sort(fixed_pattern_rng.choice(n_pix, size=n_hot, replace=False))
+        self.hot_rate_e_per_s = spec.hot_pixel_dark_e_per_s * fixed_pattern_rng.lognormal(0.0, 1.0, size=n_hot)
+        # Fixed-pattern noise, drawn only when asked for (so the hot pixels and every stream stay as they were):
+        # response (PRNU) and dark-current (DSNU) factors per pixel, mean 1, clipped at 0.
+        self.prnu = self.dsnu = None
+        for name, fraction in (("prnu", spec.prnu_fraction), ("dsnu", spec.dsnu_fraction)):
+            if fraction > 0:
+                factor = 1.0 + fraction * fixed_pattern_rng.standard_normal(self.shape)
+                setattr(self, name, np.maximum(factor, 0.0).astype(np.float32))
+        self._work = np.empty(self.shape, dtype=np.float32)  # read-out scratch, reused so its pages stay mapped
+
+    def set_background(self, background_e_per_px_s: float | np.ndarray) -> None:
+        """The light background (sky, stray light), e-/px/s, a scalar or a (height, width) map; the sensor replaces
+        it frame by frame where bright bodies' stray light changes."""
         bg = np.asarray(background_e_per_px_s, dtype=np.float32)
         if bg.ndim not in (0, 2) or (bg.ndim == 2 and bg.shape != self.shape):
             raise ValueError(f"background_e_per_px_s must be a scalar or a {self.shape} map, got shape {bg.shape}")
@@ -89,44 +119,49 @@ class Detector:
         if np.any(bg < 0):
             raise ValueError("background_e_per_px_s must be >= 0 e-/px/s")
         self.background_e_per_px_s = bg
-        n_pix = self.shape[0] * self.shape[1]
-        n_hot = int(fixed_pattern_rng.binomial(n_pix, spec.hot_pixel_fraction)) if spec.hot_pixel_fraction else 0
-        self.hot_index = np.sort(fixed_pattern_rng.choice(n_pix, size=n_hot, replace=False))
-        self.hot_rate_e_per_s = spec.hot_pixel_dark_e_per_s * fixed_pattern_rng.lognormal(0.0, 1.0, size=n_hot)
-        self._background_cache: tuple[float, np.ndarray, np.ndarray | None] | None = None
-        self._work = np.empty(self.shape, dtype=np.float32)  # read-out scratch, reused so its pages stay mapped
+        self._background_cache: tuple[tuple[float, float], np.ndarray, np.ndarray | None] | None = None
 
-    def background(self, exposure_s: float) -> tuple[np.ndarray, np.ndarray | None]:
+    def background(self, exposure_s: float, dark_factor: float = 1.0) -> tuple[np.ndarray, np.ndarray | None]:
         """Mean background + dark electrons per pixel over an exposure (scalar or map), and the per-pixel std of the
-        Gaussian fast path (None when the exact Poisson path is used)."""
-        if self._background_cache is None or self._background_cache[0] != exposure_s:
-            lam = (self.background_e_per_px_s + np.float32(self.spec.dark_current_e_per_s)) * np.float32(exposure_s)
+        Gaussian fast path (None when the exact Poisson path is used); ``dark_factor`` scales the dark current (the
+        sensor temperature's, :meth:`~starenv.sim.thermal.Thermal.dark_factor`)."""
+        key = (exposure_s, dark_factor)
+        if self._background_cache is None or self._background_cache[0] != key:
+            light = self.background_e_per_px_s if self.prnu is None else self.background_e_per_px_s * self.prnu
+            dark = np.float32(self.spec.dark_current_e_per_s * dark_factor)
+            if self.dsnu is not None:
+                dark = dark * self.dsnu
+            lam = (light + dark) * np.float32(exposure_s)
             read2 = self.spec.read_noise_e**2
             lo, hi = float(np.min(lam)), float(np.max(lam))
             worst = min(max(2.0 * read2, lo), hi)  # lambda / (lambda + r^2)^1.5 peaks at lambda = 2 r^2
             skew = worst / (worst + read2) ** 1.5 if worst + read2 > 0 else math.inf
             std = np.sqrt(lam + np.float32(read2)).astype(np.float32) if skew < GAUSSIAN_SKEW_LIMIT else None
-            self._background_cache = (exposure_s, lam, std)
+            self._background_cache = (key, lam, std)
         return self._background_cache[1], self._background_cache[2]
 
-    def peak_snr(self, peak_e: np.ndarray, xy: np.ndarray, exposure_s: float) -> np.ndarray:
+    def peak_snr(self, peak_e: np.ndarray, xy: np.ndarray, exposure_s: float, dark_factor: float = 1.0) -> np.ndarray:
         """Signal-to-noise of a star whose brightest pixel (at ``xy``, px) expects ``peak_e`` electrons."""
-        lam, _ = self.background(exposure_s)
+        lam, _ = self.background(exposure_s, dark_factor)
         if lam.ndim:
             col = np.clip(np.rint(xy[:, 0]), 0, self.shape[1] - 1).astype(np.intp)
             row = np.clip(np.rint(xy[:, 1]), 0, self.shape[0] - 1).astype(np.intp)
             lam = lam[row, col]
         return peak_e / np.sqrt(peak_e + lam + self.spec.read_noise_e**2)
 
-    def read_out(self, signal: StarSignal, exposure_s: float, rng: np.random.Generator) -> np.ndarray:
-        """A uint16 frame (height, width) in DN for the given star signal (expected e-) and exposure (s).
+    def read_out(self, signal: StarSignal, exposure_s: float, rng: np.random.Generator,
+                 dark_factor: float = 1.0) -> np.ndarray:
+        """A uint16 frame (height, width) in DN for the given star signal (expected e-) and exposure (s), the dark
+        current scaled by ``dark_factor``.
 
         Works in DN from the start (``e / gain + bias``) so the full-frame passes are few; the full well
-        (``min(e, full_well)``) is the clip at ``full_well / gain + bias``.
+        (``min(e, full_well)``) is the clip at ``full_well / gain + bias``.  With blooming the charge above the full
+        well spills along the columns first (:func:`bloom_columns`, on the charge with the read noise already in
+        it: a few read-noise sigmas of the full well).
         """
         spec = self.spec
         inv_gain = np.float32(1.0 / spec.gain_e_per_dn)
-        lam, std = self.background(exposure_s)
+        lam, std = self.background(exposure_s, dark_factor)
         dn = self._work
         if std is not None:
             rng.standard_normal(dtype=np.float32, out=dn)
@@ -141,13 +176,17 @@ class Detector:
         flat = dn.reshape(-1)
         if signal.shape != self.shape:
             raise ValueError(f"signal is for a {signal.shape} sensor, this one is {self.shape}")
-        flat[signal.index] += rng.poisson(signal.electrons).astype(np.float32) * inv_gain
+        electrons = signal.electrons if self.prnu is None else signal.electrons * self.prnu.ravel()[signal.index]
+        flat[signal.index] += rng.poisson(electrons).astype(np.float32) * inv_gain
         if len(self.hot_index):
-            flat[self.hot_index] += rng.poisson(self.hot_rate_e_per_s * exposure_s).astype(np.float32) * inv_gain
+            hot = rng.poisson(self.hot_rate_e_per_s * exposure_s * dark_factor)
+            flat[self.hot_index] += hot.astype(np.float32) * inv_gain
         self._add_cosmic_rays(dn, exposure_s, rng, inv_gain)
+        if spec.blooming:
+            bloom_columns(dn, spec.full_well_e / spec.gain_e_per_dn + spec.bias_dn, spec.bias_dn)
         top = min(float(spec.max_dn), spec.full_well_e / spec.gain_e_per_dn + spec.bias_dn)
-        np.clip(dn, 0.0, np.float32(top), out=dn)
-        return dn.astype(np.uint16)  # truncation = the ADC's floor for non-negative values
+        # clip and convert in one pass (the cast truncates: the ADC's floor for non-negative values)
+        return np.clip(dn, 0.0, np.float32(top), out=np.empty(self.shape, np.uint16), casting="unsafe")
 
     def _add_cosmic_rays(self, dn: np.ndarray, exposure_s: float, rng: np.random.Generator, inv_gain) -> None:
         spec = self.spec
@@ -166,3 +205,35 @@ class Detector:
             cols = np.clip(np.rint(x + s * math.cos(a)), 0, w - 1).astype(np.intp)
             rows = np.clip(np.rint(y + s * math.sin(a)), 0, h - 1).astype(np.intp)
             np.add.at(dn, (rows, cols), np.float32(q / n_seg) * inv_gain)
+
+
+def _spill(charge: np.ndarray, source: np.ndarray, full: float) -> float:
+    """Move ``source`` (rows, cols) charge from each pixel towards row ``rows - 1`` of ``charge`` (rows, cols), every
+    pixel on the way filled up to ``full`` before the rest passes on; in place.  Returns the charge that left the
+    last row.  The flow out of pixel ``k`` is Lindley's recursion ``W_k = max(0, W_{k-1} + s_k - room_k)``, in
+    closed form ``W_k = S_k - min(0, min_{j<=k} S_j)`` with ``S`` the running sum of ``s - room``."""
+    room = full - charge
+    running = np.cumsum(source - room, axis=0)
+    flow = running - np.minimum(np.minimum.accumulate(running, axis=0), 0.0)
+    inflow = np.vstack([np.zeros((1, charge.shape[1])), flow[:-1]])
+    charge += inflow + source - flow
+    return float(flow[-1].sum())
+
+
+def bloom_columns(image: np.ndarray, full: float, empty: float = 0.0) -> float:
+    """Blooming, in place on ``image`` (rows, cols; any units, ``empty`` the level of no charge): the charge each
+    pixel holds above ``full`` leaves it, half towards row 0 and half towards the last row, filling the pixels of
+    its column on the way up to ``full``; what passes the sensor's first or last row is lost.  Charge is conserved:
+    returns the lost amount, so the image's sum before equals its sum after plus that.  Only the columns holding a
+    pixel above ``full`` are touched."""
+    cols = np.flatnonzero(np.any(image > full, axis=0))
+    if len(cols) == 0:
+        return 0.0
+    charge = image[:, cols].astype(np.float64) - empty
+    top = full - empty
+    excess = np.maximum(charge - top, 0.0)
+    charge -= excess
+    lost = _spill(charge[::-1], 0.5 * excess[::-1], top)  # towards row 0: the columns read bottom-up
+    lost += _spill(charge, 0.5 * excess, top)
+    image[:, cols] = charge + empty
+    return lost

@@ -86,6 +86,15 @@ class Trajectory:
         """Body angular rate (rad/s, body frame) at time(s) t (s)."""
         return self.motion.body_rate(t)
 
+    @property
+    def orbit(self) -> LeoNadir | None:
+        """The orbit the spacecraft flies (a :class:`LeoNadir` motion, with or without superposed jitter), or None:
+        then the observer is taken at the geocentre."""
+        motion = self.motion
+        while isinstance(motion, Superposed):
+            motion = motion.base
+        return motion if isinstance(motion, LeoNadir) else None
+
 
 class ConstantRate(Motion):
     """Constant body rate ``rate`` (3,) rad/s in the body frame: ``delta(t) = Rotation.from_rotvec(-rate * t)``."""

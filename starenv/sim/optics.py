@@ -372,13 +372,92 @@ def check_camera_field(name: str, value, unit: str = "") -> float:
     return checks.in_range(name, value, low, high, low_open=low_open, unit=unit)
 
 
+# Spread of the sub-points that draw a spot's radial elongation (FieldSpot), in its sigmas either side.
+SPOT_SPAN_SIGMA = 3.0
+
+
+@dataclass(frozen=True)
+class SpotShape:
+    """A spot at given field positions: the light's centroid ``offset`` (n, 2) px from the geometric image, the
+    isotropic ``sigma`` (n,) px, the extra ``radial_sigma`` (n,) px along the unit ``radial`` direction (n, 2) (away
+    from the principal point); covariance ``sigma^2 I + radial_sigma^2 radial radial^T``."""
+
+    offset: np.ndarray
+    sigma: np.ndarray
+    radial_sigma: np.ndarray
+    radial: np.ndarray
+
+    def subset(self, index: np.ndarray) -> SpotShape:
+        """The spots at ``index``."""
+        return SpotShape(self.offset[index], self.sigma[index], self.radial_sigma[index], self.radial[index])
+
+    def covariance(self) -> np.ndarray:
+        """Covariance (n, 2, 2) px^2 of each spot."""
+        outer = self.radial[:, :, None] * self.radial[:, None, :]
+        return (self.sigma**2)[:, None, None] * np.eye(2) + (self.radial_sigma**2)[:, None, None] * outer
+
+
+@dataclass(frozen=True)
+class FieldSpot:
+    """A Gaussian spot that changes across the field with the field dependence of the Seidel aberrations.
+
+    With ``h`` the distance of an image point from the principal point over the field radius (the farthest sensor
+    corner, so ``h = 1`` there) and ``r`` the unit vector away from the principal point, each term a standard
+    deviation (px) at the corner, added in quadrature to the camera's ``psf_sigma_px``:
+
+    * ``defocus_sigma_px``: isotropic, the same everywhere (a focus error);
+    * ``field_curvature_sigma_px``: isotropic, growing as ``h^2`` (the focal surface curving off the sensor);
+    * ``astigmatism_sigma_px``: along ``r`` only, growing as ``h^2`` (the sensor at the sagittal focus);
+    * ``coma_px``: third-order coma of a uniformly lit circular pupil, ray error ``C h rho^2 (2 + cos 2t, sin 2t)``
+      (along ``r`` and across it) with ``C = coma_px``: its mean over the pupil moves the light's centroid by
+      ``C h`` along ``r``, and its variances are ``C^2 h^2 / 2`` along ``r`` and ``C^2 h^2 / 6`` across.
+
+    Covariance ``(s0^2 + d^2 + f^2 h^4 + C^2 h^2 / 6) I + (a^2 h^4 + C^2 h^2 / 3) r r^T`` (:meth:`shape`).
+    """
+
+    defocus_sigma_px: float = 0.0
+    field_curvature_sigma_px: float = 0.0
+    astigmatism_sigma_px: float = 0.0
+    coma_px: float = 0.0
+
+    def __post_init__(self):
+        for name in ("defocus_sigma_px", "field_curvature_sigma_px", "astigmatism_sigma_px"):
+            checks.in_range(f"spot.{name}", getattr(self, name), 0.0, 20.0, unit="px")
+        checks.in_range("spot.coma_px", self.coma_px, -20.0, 20.0, unit="px")
+
+    @staticmethod
+    def field_radius_px(k: Intrinsics) -> float:
+        """Distance (px) from the principal point to the farthest sensor corner: ``h = 1`` there."""
+        return math.hypot(max(k.cx + 0.5, k.width - 0.5 - k.cx), max(k.cy + 0.5, k.height - 0.5 - k.cy))
+
+    def shape(self, xy: np.ndarray, k: Intrinsics, psf_sigma_px: float) -> SpotShape:
+        """The spot at pixel positions ``xy`` (n, 2) of a camera with intrinsics ``k`` whose on-axis sigma is
+        ``psf_sigma_px`` (px)."""
+        d = np.asarray(xy, dtype=np.float64).reshape(-1, 2) - [k.cx, k.cy]
+        dist = np.hypot(d[:, 0], d[:, 1])
+        h = dist / self.field_radius_px(k)
+        radial = np.where(dist[:, None] > 0, d / np.where(dist > 0, dist, 1.0)[:, None], [1.0, 0.0])
+        c2h2 = (self.coma_px * h) ** 2
+        sigma2 = psf_sigma_px**2 + self.defocus_sigma_px**2 + (self.field_curvature_sigma_px * h * h) ** 2 + c2h2 / 6
+        radial2 = (self.astigmatism_sigma_px * h * h) ** 2 + c2h2 / 3
+        return SpotShape((self.coma_px * h)[:, None] * radial, np.sqrt(sigma2), np.sqrt(radial2), radial)
+
+    def reach_px(self, k: Intrinsics, psf_sigma_px: float) -> tuple[float, float]:
+        """The largest isotropic sigma and the farthest a spot's light reaches beyond its sigma's band (radial spread
+        and centroid offset), px, over the sensor (both grow with ``h``: their values at the farthest corner)."""
+        corner = np.array([[k.cx + self.field_radius_px(k), k.cy]])
+        s = self.shape(corner, k, psf_sigma_px)
+        return float(s.sigma[0]), float(SPOT_SPAN_SIGMA * 1.02 * s.radial_sigma[0] + abs(self.coma_px))
+
+
 @dataclass(frozen=True)
 class Camera:
     """One camera head: resolution, pinhole intrinsics (px), distortion and the body -> camera mounting rotation.
 
     ``pixel_pitch_m`` and ``focal_length_m`` are the physical values (``fx = focal_length_m / pixel_pitch_m``);
     ``aperture_m`` is the entrance-pupil diameter used for photometry; ``psf_sigma_px`` the Gaussian sigma of a still
-    star's spot (px), part of a sensor's calibration (detectors and deblurrers default to it).
+    star's spot (px), part of a sensor's calibration (detectors and deblurrers default to it); ``spot`` a spot that
+    changes across the field on top of it (None: the same Gaussian everywhere).
     """
 
     width: int
@@ -392,6 +471,7 @@ class Camera:
     distortion: Distortion = NoDistortion()
     mounting: Rotation = field(default_factory=Rotation.identity)
     psf_sigma_px: float = 1.0
+    spot: FieldSpot | None = None
 
     def __post_init__(self):
         check_camera_field("width", self.width)
@@ -406,6 +486,8 @@ class Camera:
         if not isinstance(self.mounting, Rotation) or not self.mounting.single:
             raise ValueError("mounting must be a single scipy Rotation (body -> camera)")
         checks.finite("mounting", self.mounting.as_quat(), shape=(4,))
+        if self.spot is not None and not isinstance(self.spot, FieldSpot):
+            raise ValueError(f"spot must be a FieldSpot or None, got {type(self.spot).__name__}")
         if not isinstance(self.distortion, Distortion):
             raise ValueError(f"distortion must be a Distortion model, got {type(self.distortion).__name__}")
         fov_x, fov_y = self.fov
@@ -451,6 +533,13 @@ class Camera:
     @property
     def intrinsics(self) -> Intrinsics:
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+    def spot_shape(self, xy: np.ndarray) -> SpotShape:
+        """The spot at pixel positions ``xy`` (n, 2): :attr:`spot`'s, else ``psf_sigma_px`` everywhere."""
+        if self.spot is not None:
+            return self.spot.shape(xy, self.intrinsics, self.psf_sigma_px)
+        n = len(np.asarray(xy).reshape(-1, 2))
+        return SpotShape(np.zeros((n, 2)), np.full(n, self.psf_sigma_px), np.zeros(n), np.tile([1.0, 0.0], (n, 1)))
 
     @property
     def focal_length_m(self) -> float:

@@ -26,7 +26,8 @@ from scipy.special import erf
 
 from starenv import checks
 from starenv.sim.conventions import frame_span_s, row_window
-from starenv.sim.optics import Camera, check_camera_field
+from starenv.sim.ephemeris import aberrate
+from starenv.sim.optics import SPOT_SPAN_SIGMA, Camera, SpotShape, check_camera_field
 from starenv.sim.photometry import Photometry
 from starenv.sim.sky import StarCatalog
 
@@ -116,24 +117,39 @@ class StarRenderer:
         self.line_time_s = checks.in_range("line_time_s", line_time_s, 0.0, 1e-3, unit="s")
         self.electrons_per_s = photometry.star_electrons_per_s(catalog.magnitude)
         self.max_step_px = min(self.psf_sigma_px, 0.5)
-        corner = camera.half_diagonal
+        self.use_camera(camera)
+
+    def use_camera(self, camera: Camera) -> None:
+        """Render through ``camera`` from now on (a camera whose focal length or distortion drifts along the run; same
+        sensor size)."""
+        if (camera.width, camera.height) != (self.camera.width, self.camera.height):
+            raise ValueError("use_camera: the camera must keep the sensor's size")
+        self.camera = camera
         # Image speed bound per unit body rate: a rotation by d(theta) moves an image point by at most
         # f (1 + tan^2(alpha)) d(theta) (paper 000, Eq. 11) at field angle alpha <= the corner angle.
-        self._px_per_rad = max(camera.fx, camera.fy) * (1.0 + math.tan(corner) ** 2)
+        self._px_per_rad = max(camera.fx, camera.fy) * (1.0 + math.tan(camera.half_diagonal) ** 2)
 
     def _instants(self, trajectory, t0: float, t1: float) -> int:
         """Number of midpoint instants so that a star moves at most ``max_step_px`` between two."""
         path_px = trajectory.motion.max_rate(t0, t1) * (t1 - t0) * self._px_per_rad
         return max(1, math.ceil(path_px / self.max_step_px))
 
-    def render(self, trajectory, t_start: float, exposure_s: float) -> RenderedFrame:
-        """Expected star signal for the exposure opening at ``t_start`` (s) and lasting ``exposure_s`` (s)."""
+    def render(self, trajectory, t_start: float, exposure_s: float, observer_velocity=None) -> RenderedFrame:
+        """Expected star signal for the exposure opening at ``t_start`` (s) and lasting ``exposure_s`` (s).
+
+        ``observer_velocity``: None (stars at their catalogue directions) or a callable of time (s) giving the
+        observer's velocity (m/s, ICRS axes); the stars are then rendered at their apparent directions for the velocity
+        at the head's mid-exposure (its change over one exposure, ``a * exposure / c`` for an acceleration ``a``, is
+        neglected: 3 mas for a 0.1 s exposure in low Earth orbit)."""
         t_start = float(checks.finite("t_start", t_start, shape=()))
         exposure = checks.in_range("exposure_s", exposure_s, 0.0, 10.0, low_open=True, unit="s")
         cam = self.camera
         t_mid = t_start + 0.5 * frame_span_s(exposure, self.line_time_s, cam.height)
         sigma = self.psf_sigma_px
         margin_px = PSF_RADIUS_SIGMA * sigma + 1.0
+        if cam.spot is not None:
+            widest, beyond = cam.spot.reach_px(cam.intrinsics, sigma)
+            margin_px = PSF_RADIUS_SIGMA * widest + beyond + 1.0
 
         # Candidate stars: a cone around the boresight at mid-exposure wide enough for the motion during the frame.
         _, t_end_all = row_window(t_start, exposure, self.line_time_s, cam.height - 1)  # the last row closes
@@ -142,6 +158,8 @@ class StarRenderer:
         radius = min(math.pi, cam.half_diagonal + sweep + margin_px / min(cam.fx, cam.fy) + 1e-3)
         idx = self.catalog.cone(boresight, radius)
         units = self.catalog.unit[idx]
+        if observer_velocity is not None:
+            units = aberrate(units, observer_velocity(t_mid))
 
         # Exposure window of each star: the global shutter shares one; a rolling shutter follows the star's row.
         window_start = np.full(len(idx), t_start)
@@ -161,13 +179,15 @@ class StarRenderer:
 
         visible = np.flatnonzero(np.all(np.isfinite(path), axis=(1, 2)) & np.any(cam.in_frame(path, margin_px), 1))
         weight = self.electrons_per_s[idx[visible]] * exposure / n_inst  # electrons per instant
-        signal, electrons, peak = self._signal(path[visible], weight)
+        # A field-dependent spot is taken where the star is at mid-exposure, the same over its trail.
+        spot = None if cam.spot is None else cam.spot_shape(path[visible][:, n_inst // 2])
+        signal, electrons, peak = self._signal(path[visible], weight, spot)
         sel = idx[visible]
         truth = StarTruth(
             catalog_id=self.catalog.hip[sel],
             magnitude=self.catalog.magnitude[sel],
             xy_mid=xy_mid[visible],
-            xy_centroid=path[visible].mean(axis=1),
+            xy_centroid=path[visible].mean(axis=1) if spot is None else path[visible].mean(axis=1) + spot.offset,
             xy_start=xy_start[visible],
             xy_end=xy_end[visible],
             electrons=electrons,
@@ -191,8 +211,10 @@ class StarRenderer:
         xy, _ = self.camera.project(v.reshape(-1, 3))
         return xy.reshape(n_star, times.shape[1], 2)
 
-    def _signal(self, paths: np.ndarray, weight: np.ndarray) -> tuple[StarSignal, np.ndarray, np.ndarray]:
+    def _signal(self, paths: np.ndarray, weight: np.ndarray,
+                spot: SpotShape | None = None) -> tuple[StarSignal, np.ndarray, np.ndarray]:
         """Pixel-integrated Gaussian PSF summed over each star's instants; ``paths`` is (stars, instants, 2) px.
+        ``spot``: each star's field-dependent spot (:func:`spread_points`), None for ``psf_sigma_px`` everywhere.
 
         At instant k the PSF covers a band of ``n_band`` columns and rows around the star; the fraction of light in
         each (a difference of ``erf`` at the pixel edges) comes from :func:`band_fractions`.  Stars are batched by
@@ -206,6 +228,8 @@ class StarRenderer:
         if n == 0:
             empty = StarSignal(np.zeros(0, np.int64), np.zeros(0, np.float32), (cam.height, cam.width))
             return empty, np.zeros(0), np.zeros(0)
+        if spot is not None:
+            return self._spot_signal(paths, weight, spot)
         # Working memory per star: bands and fractions (~6 float64 per instant and band pixel) and ~4 float64
         # arrays the size of its window; consecutive stars are batched under BATCH_BYTES.
         n_band = _band_table(float(self.psf_sigma_px)).shape[1]
@@ -219,13 +243,40 @@ class StarRenderer:
             index, values, electrons, peak = (np.concatenate(x) for x in zip(*parts, strict=True))
         return self._merge(index, values), electrons, peak
 
-    def _signal_batch(self, paths: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, ...]:
-        """:meth:`_signal` for one batch of stars: pixel indices and electrons (unmerged), electrons and peaks."""
+    def _spot_signal(self, paths: np.ndarray, weight: np.ndarray,
+                     spot: SpotShape) -> tuple[StarSignal, np.ndarray, np.ndarray]:
+        """:meth:`_signal` with a field-dependent spot: stars grouped by how many points their radial spread takes
+        (:func:`spread_points`), each group batched as there under ``BATCH_BYTES``."""
+        n = len(paths)
+        points_needed = spread_count(spot.radial_sigma / spot.sigma)
+        parts, members = [], []
+        for count in np.unique(points_needed):
+            group = np.flatnonzero(points_needed == count)
+            points, spread = spread_points(paths[group], spot.subset(group))
+            point_weight = weight[group, None] * spread
+            sigma = np.repeat(spot.sigma[group, None], points.shape[1], axis=1)
+            n_band = _band_count(float(sigma.max()))
+            extent = points.max(axis=1) - points.min(axis=1) + n_band + 16
+            cost = 48.0 * points.shape[1] * n_band + 32.0 * extent[:, 0] * extent[:, 1]
+            batch = np.cumsum(cost) // BATCH_BYTES
+            for b in np.unique(batch):
+                parts.append(self._signal_batch(points[batch == b], point_weight[batch == b], sigma[batch == b]))
+                members.append(group[batch == b])
+        index, values, electrons, peak = (np.concatenate(x) for x in zip(*parts, strict=True))
+        order = np.concatenate(members)
+        star_electrons, star_peak = np.empty(n), np.empty(n)
+        star_electrons[order], star_peak[order] = electrons, peak
+        return self._merge(index, values), star_electrons, star_peak
+
+    def _signal_batch(self, paths: np.ndarray, weight: np.ndarray,
+                      sigma: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+        """:meth:`_signal` for one batch of stars: pixel indices and electrons (unmerged), electrons and peaks.
+        ``weight``: electrons per star's instant (n,) or per point (n, k); ``sigma``: per point (n, k) or None."""
         cam = self.camera
         n = len(paths)
-        band, frac = band_fractions(paths, self.psf_sigma_px)
+        band, frac = band_fractions(paths, self.psf_sigma_px if sigma is None else sigma)
         n_band = frac.shape[-1]
-        frac[:, :, 1, :] *= weight[:, None, None]
+        frac[:, :, 1, :] *= weight[:, None, None] if weight.ndim == 1 else weight[:, :, None]
         lo = band.min(axis=1)  # (n, 2) window origin x, y
         size = -(-(band.max(axis=1) + n_band - lo) // 8) * 8  # (n, 2) window width, height
         offset = band - lo[:, None, :]  # band start inside the window
@@ -299,6 +350,71 @@ def _patches_scatter(offset: np.ndarray, frac: np.ndarray, h: int, w: int) -> np
     return patches.reshape(m, h, w)
 
 
+def _band_count(psf_sigma_px: float) -> int:
+    """Pixels of an instant's band for a PSF sigma (px): ``PSF_RADIUS_SIGMA`` sigmas either side."""
+    return math.ceil(2 * PSF_RADIUS_SIGMA * psf_sigma_px) + 2
+
+
+def spread_count(ratio: np.ndarray) -> np.ndarray:
+    """Points :func:`spread_points` draws a spot with, per ratio of its radial to its isotropic sigma: 1 without a
+    radial spread, 3 (Gauss-Hermite) up to ``1 / sqrt(3)``, else ``2 max(3, ceil(SPOT_SPAN_SIGMA ratio)) + 1``."""
+    ratio = np.asarray(ratio, dtype=np.float64)
+    steps = np.maximum(3, np.ceil(SPOT_SPAN_SIGMA * ratio - 1e-9))
+    return np.where(ratio <= 0, 1, np.where(ratio <= 1 / math.sqrt(3.0), 3, 2 * steps + 1)).astype(np.int64)
+
+
+def spread_points(paths: np.ndarray, spot: SpotShape, with_offset: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Each star's instants (n, m, 2) px spread into ``K`` points along its spot's radial direction, (n, m K, 2), with
+    their weights (n, m K) (each instant's ``K`` sum to 1), so that isotropic Gaussians of ``spot.sigma`` on the
+    points make the spot's covariance; ``with_offset`` moves them by the spot's centroid offset too.
+
+    The points sample a Gaussian of unit variance along the radial direction, times the radial sigma, with a variance
+    of exactly 1 (the mean is 0 by symmetry), so the drawn spot's second moments are the model's exactly, and at most
+    about one isotropic sigma apart (:func:`spread_count` for the largest ratio of the stars given): the 3-point
+    Gauss-Hermite rule (``0, +-sqrt(3)``, weights ``2/3, 1/6, 1/6``: exact to the fifth moment) while
+    ``sqrt(3) radial_sigma <= sigma``; beyond, ``2J + 1`` equal steps of at most 1 over +-``SPOT_SPAN_SIGMA``
+    (``J >= 3``) weighted ``exp(-u^2/2)`` and rescaled by ~1.002 to unit variance, <= 1.002 isotropic sigmas apart,
+    where the ripple of a sum of Gaussians (the renderer's bound for trails) is below 1e-8."""
+    n, m, _ = paths.shape
+    offset = spot.offset[:, None, None, :] if with_offset else 0.0
+    count = int(spread_count(np.max(spot.radial_sigma / spot.sigma, initial=0.0)))
+    if count == 1:
+        u, w = np.zeros(1), np.ones(1)
+    elif count == 3:
+        u, w = np.array([-math.sqrt(3.0), 0.0, math.sqrt(3.0)]), np.array([1.0, 4.0, 1.0]) / 6.0
+    else:
+        u = np.linspace(-SPOT_SPAN_SIGMA, SPOT_SPAN_SIGMA, count)
+        w = np.exp(-0.5 * u * u)
+        w /= w.sum()
+        u /= math.sqrt(float(np.sum(w * u * u)))
+    step = (u[None, :, None] * spot.radial_sigma[:, None, None]) * spot.radial[:, None, :]  # (n, K, 2)
+    points = paths[:, :, None, :] + offset + step[:, None, :, :]
+    return points.reshape(n, m * len(u), 2), np.broadcast_to(np.tile(w, m), (n, m * len(u)))
+
+
+CDF_TABLE_STEP = 1e-3  # step of the tabulated normal CDF (linear interpolation error <= step^2 / 8 x 0.242 < 3.1e-8)
+CDF_TABLE_REACH = 9.0  # the table spans +-this many sigmas; beyond, the CDF is 0 or 1 to within 1e-19
+
+
+@functools.cache
+def _cdf_table() -> np.ndarray:
+    z = np.arange(-CDF_TABLE_REACH, CDF_TABLE_REACH + CDF_TABLE_STEP / 2, CDF_TABLE_STEP)
+    table = 0.5 * (1.0 + erf(z / math.sqrt(2.0)))
+    table.flags.writeable = False
+    return table
+
+
+def normal_cdf(z: np.ndarray) -> np.ndarray:
+    """The standard normal CDF at ``z`` (any shape), from a table interpolated linearly (error < 3.1e-8), many
+    times faster than ``erf`` on large arrays."""
+    table = _cdf_table()
+    pos = (np.clip(z, -CDF_TABLE_REACH, CDF_TABLE_REACH) + CDF_TABLE_REACH) * (1.0 / CDF_TABLE_STEP)
+    i0 = np.minimum(pos.astype(np.int64), len(table) - 2)
+    pos -= i0
+    lo = table[i0]
+    return lo + (table[i0 + 1] - lo) * pos
+
+
 @functools.lru_cache(maxsize=16)
 def _band_table(psf_sigma_px: float) -> np.ndarray:
     """Fraction of a pixel-integrated Gaussian in each of the ``n_band`` pixels of an instant's band, tabulated
@@ -314,11 +430,21 @@ def _band_table(psf_sigma_px: float) -> np.ndarray:
     return table
 
 
-def band_fractions(points: np.ndarray, psf_sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+def band_fractions(points: np.ndarray, psf_sigma_px: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pixel-integrated Gaussian PSF (sigma ``psf_sigma_px`` px) of point sources at ``points`` (..., 2) px,
     separated per axis: ``band`` (..., 2) int64, the first column / row of the ``n_band`` pixels each covers
     (``PSF_RADIUS_SIGMA`` sigmas either side), and ``frac`` (..., 2, n_band), the fraction of the light in each
-    of those columns (index 0) and rows (index 1).  A source's pixel (col, row) gets ``frac[0, i] * frac[1, j]``."""
+    of those columns (index 0) and rows (index 1).  A source's pixel (col, row) gets ``frac[0, i] * frac[1, j]``.
+    One sigma for all comes from a table of sub-pixel phases; a sigma per point (an array of ``points.shape[:-1]``)
+    is integrated with ``erf`` directly, every band as wide as the largest sigma's."""
+    if np.ndim(psf_sigma_px):
+        sigma = np.broadcast_to(np.asarray(psf_sigma_px, dtype=np.float64), points.shape[:-1])
+        radius = PSF_RADIUS_SIGMA * float(sigma.max())
+        start = np.floor(points - radius)
+        edges = start[..., None] + (np.arange(_band_count(float(sigma.max())) + 1) - 0.5)  # (..., 2, n_band + 1)
+        edges -= points[..., None]
+        edges /= sigma[..., None, None]
+        return start.astype(np.int64), np.diff(normal_cdf(edges), axis=-1)
     table = _band_table(float(psf_sigma_px))
     radius = PSF_RADIUS_SIGMA * psf_sigma_px
     start = np.floor(points - radius)
@@ -328,15 +454,22 @@ def band_fractions(points: np.ndarray, psf_sigma_px: float) -> tuple[np.ndarray,
     return start.astype(np.int64), table[i0] * (1.0 - w1) + table[i0 + 1] * w1
 
 
-def still_image(xy: np.ndarray, electrons: np.ndarray, shape: tuple[int, int], psf_sigma_px: float) -> np.ndarray:
+def still_image(xy: np.ndarray, electrons: np.ndarray, shape: tuple[int, int], psf_sigma_px: float,
+                spot: SpotShape | None = None) -> np.ndarray:
     """Noise-free float64 image (height, width) in e- of still point sources: each star's ``electrons`` spread by the
-    renderer's pixel-integrated Gaussian PSF (:func:`band_fractions`) about its position ``xy`` (n, 2) px."""
+    renderer's pixel-integrated Gaussian PSF (:func:`band_fractions`) about its position ``xy`` (n, 2) px; ``spot``:
+    each star's field-dependent spot there instead (drawn as the renderer draws it, :func:`spread_points`)."""
     xy = checks.finite("xy", xy).reshape(-1, 2)
     electrons = checks.finite("electrons", electrons).reshape(-1)
     if len(electrons) != len(xy):
         raise ValueError(f"electrons must hold one value per position: {len(xy)} positions, {len(electrons)} values")
     height, width = shape
-    band, frac = band_fractions(xy, psf_sigma_px)  # (n, 2), (n, 2, n_band)
+    if spot is None:
+        band, frac = band_fractions(xy, psf_sigma_px)  # (n, 2), (n, 2, n_band)
+    else:
+        points, spread = spread_points(xy[:, None, :], spot)  # (n, K, 2), (n, K)
+        electrons = (electrons[:, None] * spread).reshape(-1)
+        band, frac = band_fractions(points.reshape(-1, 2), np.repeat(spot.sigma, points.shape[1]))
     n_band = frac.shape[-1]
     cols = band[:, 0, None] + np.arange(n_band)  # (n, n_band)
     rows = band[:, 1, None] + np.arange(n_band)

@@ -3,7 +3,8 @@
 Frame ``k`` opens its exposure at ``t = k / frame_rate_hz``; a rolling shutter opens row ``r`` ``r * line_time_s``
 later.  The frame's attitude truth is taken at head 0's mid-exposure time (with a rolling shutter: the middle of the
 whole readout).  The gyro samples delivered with frame ``k`` are those stamped after the previous frame's delivery
-and up to the end of frame ``k``'s exposure window on head 0.
+and up to the end of frame ``k``'s exposure window on head 0 (a scenario's recorded gyro log, ``gyro_replay``, is
+delivered the same way, in place of the gyro model).
 
 Randomness: one seed makes independent streams (``SeedSequence.spawn``) for each head's fixed pattern, each head's
 pixel noise, each head's drop channel and the gyro, so adding a head does not change another head's images.
@@ -11,21 +12,25 @@ pixel noise, each head's drop channel and the gyro, so adding a head does not ch
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.sim.conventions import ARCSEC, row_window
+from starenv.sim.attitude_files import GyroRecord, GyroReplay
+from starenv.sim.bodies import Baffle, HeadBodies, SkyBodies, SkySpec, add_signal
+from starenv.sim.conventions import ARCSEC, frame_span_s, row_window
 from starenv.sim.drops import DropChannel, DropModel
+from starenv.sim.ephemeris import ObserverVelocity
 from starenv.sim.gyro import Gyro, GyroSamples, GyroSpec
 from starenv.sim.imager import Detector, DetectorSpec
 from starenv.sim.motion import Trajectory
 from starenv.sim.optics import Camera
 from starenv.sim.photometry import Photometry, StrayLight
 from starenv.sim.render import DETECTABLE_SNR, StarRenderer, StarTruth, still_image
-from starenv.sim.sky import StarCatalog, load_catalog
+from starenv.sim.sky import CatalogFile, StarCatalog, load_catalog
+from starenv.sim.thermal import Thermal
 
 
 @dataclass
@@ -38,6 +43,8 @@ class HeadSpec:
     photometry: Photometry
     detector: DetectorSpec
     stray_light: StrayLight
+    thermal: Thermal | None = None  # sensor temperature along the run and its effects; None: none
+    baffle: Baffle = field(default_factory=Baffle)  # stray light and exclusion angles of bright bodies ([sky] bodies)
 
     @property
     def psf_sigma_px(self) -> float:
@@ -47,7 +54,7 @@ class HeadSpec:
 class SensorSpec(Protocol):
     """What the sensor is built from (a loaded :class:`~starenv.scenario.Scenario` is one): timing (s, Hz), the
     simulated sky's magnitude limit, epoch (Julian year) and sky brightness (mag/arcsec^2), the seed, the true
-    trajectory, the gyro, the drop model and the heads."""
+    trajectory, the gyro, the drop model, the heads and which solar-system effects to simulate."""
 
     seed: int
     frame_rate_hz: float
@@ -59,6 +66,9 @@ class SensorSpec(Protocol):
     gyro: GyroSpec
     drops: DropModel
     heads: list[HeadSpec]
+    sky: SkySpec
+    sky_catalog: CatalogFile | None  # the rendered stars' file; None: the bundled Hipparcos-2
+    gyro_replay: GyroRecord | None  # a recorded gyro log delivered instead of the gyro model; None: the model
 
 
 @dataclass
@@ -70,6 +80,8 @@ class HeadFrame:
     truth: StarTruth
     t_mid: float
     n_instants: int
+    camera: Camera | None = None  # the true camera of this frame when the temperature moved it, else None
+    bodies: HeadBodies | None = None  # the Sun, Moon, Earth and planets on this head ([sky] bodies), else None
 
 
 @dataclass
@@ -84,6 +96,8 @@ class Frame:
     heads: list[HeadFrame]
     gyro: GyroSamples
     gyro_bias: np.ndarray  # (3,) rad/s: the gyro's total bias at its last sample delivered with this frame
+    # (3,) m/s, ICRS axes: the observer's velocity the stars were aberrated for, at mid-exposure (zero without)
+    observer_velocity_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 class StarSensor:
     """Steps a :class:`SensorSpec` (e.g. a scenario): call :meth:`reset` with a seed, then :meth:`next_frame`."""
@@ -92,7 +106,18 @@ class StarSensor:
         """``catalog``: the sky to render (default: the scenario's, Hp <= ``mag_limit`` at its ``epoch``); dataset
         generators pass an edited one (stars removed, false stars added, positions or magnitudes perturbed)."""
         self.scenario = scenario
-        self.catalog = load_catalog(scenario.mag_limit, scenario.epoch) if catalog is None else catalog
+        sky_file = scenario.sky_catalog
+        if catalog is None:
+            catalog = (load_catalog(scenario.mag_limit, scenario.epoch) if sky_file is None
+                       else sky_file.load(scenario.mag_limit, scenario.epoch))
+        self.catalog = catalog
+        self.observer_velocity = None  # callable of t (s) -> m/s, ICRS axes, when the stars are aberrated
+        if scenario.sky.aberration:
+            orbit = scenario.trajectory.orbit
+            self.observer_velocity = ObserverVelocity(scenario.epoch, None if orbit is None else orbit.velocity)
+        self.bodies = None  # the solar-system bodies, frame by frame, when the scenario draws them
+        if scenario.sky.bodies:
+            self.bodies = SkyBodies(scenario.epoch, scenario.trajectory.orbit, scenario.sky, self.observer_velocity)
         self.renderers = []
         self.backgrounds = []
         for head in scenario.heads:
@@ -120,7 +145,9 @@ class StarSensor:
         self.noise_rngs = [np.random.default_rng(streams[2 + 3 * i]) for i in range(n)]
         self.drop_rngs = [np.random.default_rng(streams[3 + 3 * i]) for i in range(n)]
         self.drop_channels = [DropChannel(self.scenario.drops) for _ in range(n)]
-        self.gyro = Gyro(self.scenario.gyro, np.random.default_rng(streams[0]))
+        replay = self.scenario.gyro_replay
+        self.gyro = (Gyro(self.scenario.gyro, np.random.default_rng(streams[0])) if replay is None
+                     else GyroReplay(replay))
         self.index = 0
 
     def next_frame(self) -> Frame:
@@ -129,22 +156,34 @@ class StarSensor:
         k = self.index
         t_start = k / sc.frame_rate_hz
         heads = []
-        for renderer, detector, noise, drops, drop_rng in zip(
-            self.renderers, self.detectors, self.noise_rngs, self.drop_channels, self.drop_rngs, strict=True
-        ):
-            rendered = renderer.render(sc.trajectory, t_start, sc.exposure_s)
+        for h, (spec, renderer, detector, noise, drops, drop_rng) in enumerate(zip(
+            sc.heads, self.renderers, self.detectors, self.noise_rngs, self.drop_channels, self.drop_rngs, strict=True
+        )):
+            dark, camera = self._thermal_state(spec, renderer, t_start + 0.5 * sc.exposure_s)
+            rendered = renderer.render(sc.trajectory, t_start, sc.exposure_s, self.observer_velocity)
+            bodies = None
+            if self.bodies is not None:
+                bodies = self.bodies.head_view(spec, camera or spec.camera, sc.trajectory.attitude(rendered.t_mid),
+                                               rendered.t_mid, sc.exposure_s)
+                rendered.signal = add_signal(rendered.signal, bodies.index, bodies.electrons)
+                detector.set_background(self.backgrounds[h] + bodies.stray_e_per_px_s)
             truth = rendered.truth
-            truth.detectable = detector.peak_snr(truth.peak_electrons, truth.xy_mid, sc.exposure_s) >= DETECTABLE_SNR
-            image = detector.read_out(rendered.signal, sc.exposure_s, noise)
+            snr = detector.peak_snr(truth.peak_electrons, truth.xy_mid, sc.exposure_s, dark)
+            truth.detectable = snr >= DETECTABLE_SNR
+            image = detector.read_out(rendered.signal, sc.exposure_s, noise, dark)
             dropped = drops.dropped(drop_rng)
             if dropped:
                 image = np.zeros_like(image)
-            heads.append(HeadFrame(image, dropped, truth, rendered.t_mid, rendered.n_instants))
+            heads.append(HeadFrame(image, dropped, truth, rendered.t_mid, rendered.n_instants, camera, bodies))
         t_mid = heads[0].t_mid
         first = sc.heads[0]
         _, window_end = row_window(t_start, sc.exposure_s, first.detector.line_time_s, first.camera.height - 1)
-        gyro = self.gyro.sample_until(sc.trajectory.body_rate, window_end)
+        # a motion whose rate jumps between samples (an attitude file) gives each gyro interval's exact mean
+        mean_rate = getattr(sc.trajectory.motion, "mean_body_rate", None)
+        gyro = (self.gyro.sample_until(sc.trajectory.body_rate, window_end) if mean_rate is None
+                else self.gyro.sample_until(sc.trajectory.body_rate, window_end, mean_rate))
         self.index += 1
+        velocity = np.zeros(3) if self.observer_velocity is None else np.array(self.observer_velocity(t_mid))
         return Frame(
             index=k,
             t_start=t_start,
@@ -154,16 +193,47 @@ class StarSensor:
             heads=heads,
             gyro=gyro,
             gyro_bias=self.gyro.bias_rad_s,
+            observer_velocity_m_s=velocity,
         )
 
-    def still_frame(self, head: int, truth: StarTruth) -> np.ndarray:
+    @staticmethod
+    def _thermal_state(spec: HeadSpec, renderer: StarRenderer, t: float) -> tuple[float, Camera | None]:
+        """A head's dark-current factor at time ``t`` (s) and, when its temperature moves the optics, the true camera
+        then (the renderer is switched to it); 1.0 and None without a thermal model."""
+        if spec.thermal is None:
+            return 1.0, None
+        camera = None
+        if spec.thermal.moves_optics:
+            camera = spec.thermal.camera(spec.camera, t)
+            renderer.use_camera(camera)
+        return spec.thermal.dark_factor(t), camera
+
+    def still_frame(self, head: int, truth: StarTruth, frame: int | None = None) -> np.ndarray:
         """Noise-free reference of head ``head``'s frame as a still sensor would see it, float64 DN (H, W): each
-        star's on-sensor electrons as the static PSF at its mid-exposure position ``xy_mid``, plus the mean
-        background (sky, stray light and dark current over the exposure), through the gain and bias; no noise, no hot
-        pixels, no ADC rounding or clipping."""
+        star's on-sensor electrons as the static PSF (the camera's spot there) at its mid-exposure position ``xy_mid``,
+        plus the mean background (sky, stray light and dark current over the exposure, at the reference temperature,
+        without fixed patterns), through the gain and bias; no noise, no hot pixels, no ADC rounding or clipping.
+        With ``[sky] bodies`` and the frame's index ``frame``, the bodies as that frame draws them (the Moon's disk
+        and the planets at mid-exposure) and their stray light are added; without ``frame`` they are left out."""
         spec = self.scenario.heads[head]
         cam, det = spec.camera, spec.detector
         exposure = self.scenario.exposure_s
-        stars = still_image(truth.xy_mid, truth.electrons, (cam.height, cam.width), spec.psf_sigma_px)
+        spot = None if cam.spot is None else cam.spot_shape(truth.xy_mid)
+        stars = still_image(truth.xy_mid, truth.electrons, (cam.height, cam.width), spec.psf_sigma_px, spot)
         background = (self.backgrounds[head] + det.dark_current_e_per_s) * exposure
+        if self.bodies is not None and frame is not None:
+            view = self._frame_bodies(head, frame)
+            np.add.at(stars.reshape(-1), view.index, view.electrons)
+            background = background + view.stray_e_per_px_s * exposure
         return det.bias_dn + (stars + background) / det.gain_e_per_dn
+
+    def _frame_bodies(self, head: int, frame: int) -> HeadBodies:
+        """The bodies on head ``head`` of frame ``frame``, as :meth:`next_frame` draws them (a function of time)."""
+        sc = self.scenario
+        spec = sc.heads[head]
+        t_start = frame / sc.frame_rate_hz
+        camera = spec.camera
+        if spec.thermal is not None and spec.thermal.moves_optics:
+            camera = spec.thermal.camera(spec.camera, t_start + 0.5 * sc.exposure_s)
+        t_mid = t_start + 0.5 * frame_span_s(sc.exposure_s, spec.detector.line_time_s, spec.camera.height)
+        return self.bodies.head_view(spec, camera, sc.trajectory.attitude(t_mid), t_mid, sc.exposure_s)

@@ -25,6 +25,12 @@ Odd fields
     no blank fields.  Some entries carry a B-V of 0.000 with an error of 0.000 (no colour measured); those are NaN in
     ``b_v`` as well.
 
+Other catalogues
+    :func:`load_catalog` reads any file in the ``hip2.dat`` format, or a plain CSV (a file whose name ends in ``.csv``,
+    :func:`parse_star_csv`): a header row naming the columns ``id, ra_deg, dec_deg, pmra_mas_yr, pmdec_mas_yr, mag``
+    and optionally ``b_v``, in any order, then one star a row.  A CSV's positions are at the epoch its user states
+    (:class:`CatalogFile`); its ``mag`` takes the place of Hp.  A bad row is refused naming the file and line.
+
 Cache
     The parsed full table is kept in memory (a second call in the same process neither reads nor parses the file) and
     on disk as ``hip2-<path hash>.npz`` in :func:`cache_dir` (``$STARENV_CACHE_DIR``, default ``~/.cache/starenv``).
@@ -37,6 +43,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 import os
 import warnings
 import zipfile
@@ -49,7 +56,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from starenv.checks import finite, in_range
-from starenv.files import atomic_file
+from starenv.files import atomic_file, csv_rows
 from starenv.sim.conventions import ARCSEC, radec_to_unit
 
 HIP_EPOCH = 1991.25  # Julian year of the Hipparcos-2 positions
@@ -99,10 +106,10 @@ def _read_only(values, dtype, name: str, shape_tail: tuple[int, ...] = ()) -> np
 
 @dataclass(frozen=True, eq=False)
 class HipparcosTable:
-    """The whole Hipparcos-2 table at J1991.25, one entry per star, sorted by HIP number.
+    """A whole catalogue table at its file's epoch (Hipparcos-2: J1991.25), one entry per star, sorted by id (HIP).
 
     ``ra``/``dec`` in radians (ICRS), ``pmra`` (``mu_alpha cos dec``) and ``pmdec`` in mas/yr, ``hp`` the Hipparcos
-    magnitude, ``b_v`` the B-V colour index (NaN where unknown).
+    magnitude (a CSV's ``mag``), ``b_v`` the B-V colour index (NaN where unknown).
     """
 
     hip: np.ndarray
@@ -134,8 +141,15 @@ def _field(lines: np.ndarray, name: str, path: Path) -> np.ndarray:
     text = np.ascontiguousarray(raw[~blank]).view(f"S{last - first + 1}").ravel()
     try:
         values[~blank] = text.astype(np.float64)
-    except ValueError as exc:
-        raise ValueError(f"{path}: column {name} (bytes {first}-{last}) holds a non-number: {exc}") from exc
+    except ValueError:
+        for line in np.flatnonzero(~blank):  # name the first bad line (rare: only on a damaged file)
+            field_text = bytes(raw[line]).decode("latin-1")
+            try:
+                float(field_text)
+            except ValueError:
+                raise ValueError(f"{path}:{line + 1}: column {name} (bytes {first}-{last}): expected a number, got "
+                                 f"{field_text!r}") from None
+        raise
     return values
 
 
@@ -148,11 +162,12 @@ def parse_hip2(path: str | os.PathLike) -> HipparcosTable:
     data = path.read_bytes()
     if data and not data.endswith(b"\n"):
         data += b"\n"
-    if len(data) % _LINE_BYTES:
-        raise ValueError(f"{path} is not a hip2.dat file: {len(data)} bytes is not a whole number of 277-byte lines")
+    ends = np.flatnonzero(np.frombuffer(data, dtype=np.uint8) == ord("\n"))
+    lengths = np.diff(np.concatenate([[-1], ends]))
+    if len(lengths) and np.any(lengths != _LINE_BYTES):
+        line = int(np.flatnonzero(lengths != _LINE_BYTES)[0])
+        raise ValueError(f"{path}:{line + 1}: not a hip2.dat line: expected 276 bytes, got {lengths[line] - 1}")
     lines = np.frombuffer(data, dtype=np.uint8).reshape(-1, _LINE_BYTES)
-    if not np.all(lines[:, -1] == ord("\n")):
-        raise ValueError(f"{path} is not a hip2.dat file: some lines are not 276 characters long")
     columns = {name: _field(lines, name, path) for name in _COLUMNS}
     keep = np.isfinite(columns["hip"]) & np.isfinite(columns["ra"]) & np.isfinite(columns["dec"])
     no_colour = (columns["b_v"] == 0.0) & (columns["e_b_v"] == 0.0)
@@ -167,6 +182,90 @@ def parse_hip2(path: str | os.PathLike) -> HipparcosTable:
         hp=columns["hp"][keep][order],
         b_v=columns["b_v"][keep][order],
     )
+
+
+CSV_COLUMNS = ("id", "ra_deg", "dec_deg", "pmra_mas_yr", "pmdec_mas_yr", "mag")  # required, in any order
+CSV_OPTIONAL = ("b_v",)
+MAX_CATALOG_BYTES = 2**28  # a catalogue file's size (hip2.dat is 32 MB): bounds parse time and memory
+MAX_STAR_ID = 2**31 - 1  # the env's action space holds catalogue ids as int64 up to this
+# Each CSV column's range: ra in degrees [0, 360), dec [-90, 90], proper motions (Barnard's star: 10.4 arcsec/yr)
+# and magnitudes and colours far beyond any star.
+_CSV_RANGES = {
+    "ra_deg": (0.0, 360.0),
+    "dec_deg": (-90.0, 90.0),
+    "pmra_mas_yr": (-1e5, 1e5),
+    "pmdec_mas_yr": (-1e5, 1e5),
+    "mag": (-30.0, 30.0),
+    "b_v": (-5.0, 10.0),
+}
+
+
+def _csv_value(path: Path, line: int, column: str, text: str) -> float:
+    """One CSV field as a number in its column's range (``b_v`` may be blank: NaN); a bad one raises ValueError
+    naming the file, line and column."""
+    text = text.strip()
+    if column == "b_v" and not text:
+        return math.nan
+    if column == "id":
+        if not (text.isascii() and text.isdigit()) or not 1 <= int(text) <= MAX_STAR_ID:
+            raise ValueError(f"{path}:{line}: id: expected an integer in [1, {MAX_STAR_ID}], got {text[:40]!r}")
+        return float(text)
+    low, high = _CSV_RANGES[column]
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    in_range = low <= value < high if column == "ra_deg" else low <= value <= high
+    if not in_range:
+        right = ")" if column == "ra_deg" else "]"
+        raise ValueError(f"{path}:{line}: {column}: expected a number in [{low:g}, {high:g}{right}, got "
+                         f"{text[:40]!r}")
+    return value
+
+
+def parse_star_csv(path: str | os.PathLike) -> HipparcosTable:
+    """Parse a CSV star catalogue into a :class:`HipparcosTable` (positions at the file's own epoch).
+
+    The first row that is not blank or a ``#`` comment names the columns: :data:`CSV_COLUMNS` (degrees, mas/yr with
+    ``pmra`` = ``mu_alpha cos dec``, magnitude), optionally ``b_v`` (blank where unknown), in any order.  Every
+    other row is a star; ids are distinct integers in [1, 2^31 - 1].  A wrong row raises ValueError naming
+    ``file:line``.  No cache is read or written here.
+    """
+    path = Path(path)
+    rows: list[list[float]] = []
+    seen: dict[int, int] = {}
+    for line, fields_ in csv_rows(path, CSV_COLUMNS, CSV_OPTIONAL, max_bytes=MAX_CATALOG_BYTES):
+        values = {c: _csv_value(path, line, c, f) for c, f in fields_.items()}
+        star = int(values["id"])
+        if star in seen:
+            raise ValueError(f"{path}:{line}: id: {star} already given on line {seen[star]}")
+        seen[star] = line
+        rows.append([values[c] if c in values else math.nan for c in CSV_COLUMNS + CSV_OPTIONAL])
+    if not rows:
+        raise ValueError(f"{path}: expected a header row and at least one star, got none")
+    table = np.array(rows, dtype=np.float64)
+    order = np.argsort(table[:, 0], kind="stable")
+    table = table[order]
+    return HipparcosTable(hip=table[:, 0].astype(np.int64), ra=np.radians(table[:, 1]), dec=np.radians(table[:, 2]),
+                          pmra=table[:, 3], pmdec=table[:, 4], hp=table[:, 5], b_v=table[:, 6])
+
+
+def is_csv(path: str | os.PathLike) -> bool:
+    """Whether a catalogue file is read as CSV (its name ends in ``.csv``, any case) rather than as hip2.dat."""
+    return str(path).lower().endswith(".csv")
+
+
+@dataclass(frozen=True)
+class CatalogFile:
+    """A star catalogue file: ``path`` (hip2.dat format, or CSV when its name ends in ``.csv``) and ``epoch``, the
+    Julian year of its positions (a hip2.dat file's are J1991.25, :data:`HIP_EPOCH`)."""
+
+    path: str
+    epoch: float = HIP_EPOCH
+
+    def load(self, mag_limit: float, epoch: float) -> StarCatalog:
+        """Its stars with magnitude <= ``mag_limit`` propagated to Julian-year ``epoch`` (see :func:`load_catalog`)."""
+        return load_catalog(mag_limit, epoch, path=self.path, position_epoch=self.epoch)
 
 
 def _disk_cache_file(source: str) -> Path:
@@ -236,6 +335,10 @@ def _write_disk_cache(file: Path, table: HipparcosTable, size: int, mtime_ns: in
 
 @functools.lru_cache(maxsize=4)
 def _cached_table(source: str, size: int, mtime_ns: int) -> HipparcosTable:
+    if is_csv(source):  # a user's file: parsed in memory only
+        return parse_star_csv(source)
+    if size > MAX_CATALOG_BYTES:
+        raise ValueError(f"{source}: a catalogue of at most {MAX_CATALOG_BYTES} bytes expected, got {size}")
     file = _disk_cache_file(source)
     table = _read_disk_cache(file, size, mtime_ns)
     if table is None:
@@ -338,26 +441,40 @@ class StarCatalog:
 
 
 @functools.lru_cache(maxsize=16)
-def _cached_catalog(source: str, size: int, mtime_ns: int, mag_limit: float, epoch: float) -> StarCatalog:
+def _cached_catalog(source: str, size: int, mtime_ns: int, mag_limit: float, epoch: float,
+                    position_epoch: float = HIP_EPOCH) -> StarCatalog:
     table = _cached_table(source, size, mtime_ns)
     bright = table.hp <= mag_limit
+    years = epoch - position_epoch
     return StarCatalog(
         hip=table.hip[bright],
         magnitude=table.hp[bright],
-        unit=propagate(table.ra[bright], table.dec[bright], table.pmra[bright], table.pmdec[bright], epoch - HIP_EPOCH),
+        unit=propagate(table.ra[bright], table.dec[bright], table.pmra[bright], table.pmdec[bright], years),
         epoch=epoch,
         b_v=table.b_v[bright],
     )
 
 
 def load_catalog(
-    mag_limit: float = 6.5, epoch: float = 2026.0, *, path: str | os.PathLike | None = None
+    mag_limit: float = 6.5, epoch: float = 2026.0, *, path: str | os.PathLike | None = None,
+    position_epoch: float | None = None,
 ) -> StarCatalog:
     """Stars with Hp <= ``mag_limit`` (in [-2, 14]) at Julian-year ``epoch`` (in [1900, 2100]), sorted by HIP number.
 
-    ``path`` selects another ``hip2.dat`` (default: the bundled one).  Results are cached in memory per
-    (file, mag_limit, epoch); the parsed table is cached on disk, see the module docstring.
+    ``path`` selects another file in the ``hip2.dat`` format, or a CSV (a name ending in ``.csv``, see
+    :func:`parse_star_csv`), whose positions are at Julian-year ``position_epoch`` (required for a CSV; a hip2.dat
+    file's are J1991.25).  Results are cached in memory per (file, mag_limit, epoch); a hip2.dat file's parsed table
+    is cached on disk, see the module docstring.
     """
     mag_limit = in_range("mag_limit", mag_limit, -2.0, 14.0, unit="mag")
     epoch = in_range("epoch", epoch, 1900.0, 2100.0, unit="Julian years")
-    return _cached_catalog(*_source(path), mag_limit, epoch)
+    if path is not None and is_csv(path):
+        if position_epoch is None:
+            raise ValueError(f"{path}: a CSV catalogue needs the Julian year of its positions (position_epoch)")
+        position_epoch = in_range("position_epoch", position_epoch, 1900.0, 2100.0, unit="Julian years")
+    elif position_epoch not in (None, HIP_EPOCH):
+        raise ValueError(f"{path or default_catalog_path()}: a hip2.dat file's positions are at J{HIP_EPOCH}, "
+                         f"got position_epoch {position_epoch!r}")
+    if position_epoch is None or position_epoch == HIP_EPOCH:
+        return _cached_catalog(*_source(path), mag_limit, epoch)
+    return _cached_catalog(*_source(path), mag_limit, epoch, position_epoch)

@@ -1,5 +1,8 @@
 """Background level and noise of a frame: sigma-clipped statistics over the whole frame, or over tiles interpolated
-into maps that follow stray-light gradients."""
+into maps that follow stray-light gradients.  A tile whose background is cut by the read-out's floor
+(``CLIPPED_FRACTION`` to ``CENSORED_MAX_FRACTION`` of its values exactly 0 DN, none below) takes the Gaussian behind
+the cut instead (:func:`censored_mean_std`): there the sigma-clipped spread sees the pile at 0 and comes out far too
+small.  A frame that does not reach 0 DN goes through the sigma-clipped statistics alone, as before."""
 
 from __future__ import annotations
 
@@ -8,7 +11,7 @@ import math
 import cv2
 import numpy as np
 from scipy import ndimage
-from scipy.special import erf
+from scipy.special import erf, ndtri
 
 from starenv.agents.blocks.workspace import Workspace
 
@@ -16,6 +19,11 @@ START_SUBSAMPLE = 3  # every n-th value of a sample gives the robust start (medi
 CLIP_ITERATIONS = 2
 MIN_TILE_KEPT = 0.25  # a tile whose clipping keeps less than this fraction of its pixels takes its neighbour's value
 QUANTISATION_NOISE_DN = 1.0 / math.sqrt(12.0)  # noise floor: the rounding of an integer read-out
+# A sample with at least this share of its values at exactly 0 DN and none below is cut by the floor: a Gaussian
+# background reaches it there only 2 standard deviations below its mean, where sigma clipping starts to feel it.
+CLIPPED_FRACTION = 0.02
+CENSORED_MAX_FRACTION = 0.8  # beyond this share at 0 (a dropped, all-zero frame) too few values place the quantiles
+CENSORED_UPPER_QUANTILE = 0.9  # the higher of the two quantiles of a cut sample (below the stars' share of a tile)
 
 
 def clipped_mean_std(values: np.ndarray, clip_sigma: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -64,10 +72,69 @@ def clipped_mean_std(values: np.ndarray, clip_sigma: float = 3.0) -> tuple[np.nd
     return centre, scale, count
 
 
+def censored_mean_std(values: np.ndarray, clip_sigma: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and standard deviation of the Gaussian behind each row of a sample whose values below 0 read 0.
+
+    Parameters
+    ----------
+    values : (m, k) ndarray of float
+        ``m`` samples of ``k`` values each (DN), >= 0: a background cut at the read-out's floor, at most
+        ``CENSORED_MAX_FRACTION`` of each at 0.
+    clip_sigma : float
+        Sets the kept fraction returned (values no more than this many standard deviations above the mean).
+
+    Returns
+    -------
+    mean, std : (m,) ndarray of float64
+        The Gaussian's (DN), the deviation at least ``QUANTISATION_NOISE_DN``.
+    kept : (m,) ndarray of float64
+        Fraction of each row's values at most ``mean + clip_sigma std`` (the floor's pile among them).
+
+    Notes
+    -----
+    The cut leaves the quantiles above the share ``p0`` of values at 0 as they were: the quantile ``x_q`` at
+    probability ``q > p0`` is ``mean + std z_q``, ``z_q`` the unit normal's.  Two of them, at ``max(0.5, p0 +
+    (1 - p0) / 4)`` and ``max(CENSORED_UPPER_QUANTILE, p0 + 3 (1 - p0) / 4)``, give both (stars and other outliers,
+    a small share of the values, sit above the second).  On a row of integers each quantile is interpolated within
+    its value's bin ``[v - 1/2, v + 1/2)`` by the empirical distribution function, so that a read-out with a noise of
+    a DN or two does not move it in whole DN.
+    """
+    values = np.asarray(values)
+    k = values.shape[1]
+    at_floor = np.count_nonzero(values <= 0, axis=1) / k
+    probability = np.column_stack([np.maximum(0.5, at_floor + 0.25 * (1.0 - at_floor)),
+                                   np.maximum(CENSORED_UPPER_QUANTILE, at_floor + 0.75 * (1.0 - at_floor))])  # (m, 2)
+    ordered = np.sort(values, axis=1)
+    index = np.minimum((probability * k).astype(np.intp), k - 1)
+    value = np.take_along_axis(ordered, index, axis=1).astype(np.float64)  # (m, 2)
+    below = np.count_nonzero(ordered[:, None, :] < value[:, :, None], axis=2) / k
+    at = np.count_nonzero(ordered[:, None, :] == value[:, :, None], axis=2) / k
+    integer = np.all(ordered == np.floor(ordered), axis=1)[:, None]
+    quantile = np.where(integer, value - 0.5 + (probability - below) / np.maximum(at, 1.0 / k), value)
+    z = ndtri(probability)
+    std = np.maximum((quantile[:, 1] - quantile[:, 0]) / (z[:, 1] - z[:, 0]), QUANTISATION_NOISE_DN)
+    mean = quantile[:, 0] - z[:, 0] * std
+    kept = np.count_nonzero(ordered <= (mean + clip_sigma * std)[:, None], axis=1) / k
+    return mean, std, kept
+
+
+def _clipped_rows(values: np.ndarray) -> np.ndarray:
+    """Mask (m,) of the rows of a sample (m, k) cut at 0: the sample's least value is 0 (a floor: none below it in
+    any row) and ``CLIPPED_FRACTION`` to ``CENSORED_MAX_FRACTION`` of the row's values are 0."""
+    if values.min() != 0:  # one pass over the sample of a frame that does not reach the floor
+        return np.zeros(len(values), bool)
+    clipped = values.min(axis=1) == 0
+    if clipped.any():
+        at_zero = np.count_nonzero(values[clipped] == 0, axis=1) / values.shape[1]
+        clipped[clipped] = (at_zero >= CLIPPED_FRACTION) & (at_zero <= CENSORED_MAX_FRACTION)
+    return clipped
+
+
 def _tile_statistics(tiles: np.ndarray, clip_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Level (DN), noise (DN) and the kept fraction of the level sample, each (ny * nx,), of tiles (ny, th, nx, tw)
     (their values taken as float32): the sigma-clipped mean of a quarter of each tile's pixels and the sigma-clipped
-    spread of differences of horizontal neighbours over sqrt 2."""
+    spread of differences of horizontal neighbours over sqrt 2; for a tile cut at 0 DN (:func:`_clipped_rows` of its
+    level sample), :func:`censored_mean_std` of all its pixels."""
     ny, _, nx, _ = tiles.shape
     # Level from a quarter of the pixels, every other one on every other row, the rows alternating between the
     # even and the odd columns (a sample centred on the tile, as a gradient needs); noise from differences of
@@ -79,7 +146,12 @@ def _tile_statistics(tiles: np.ndarray, clip_sigma: float) -> tuple[np.ndarray, 
     centre, _, count = clipped_mean_std(level_sample, clip_sigma)
     _, spread, _ = clipped_mean_std((rows[..., 1:] - rows[..., :-1]).reshape(ny * nx, -1), clip_sigma)
     scale = np.maximum(spread / math.sqrt(2.0), QUANTISATION_NOISE_DN)
-    return centre, scale, count / level_sample.shape[1]
+    kept = count / level_sample.shape[1]
+    clipped = _clipped_rows(level_sample)
+    if clipped.any():
+        whole = tiles.transpose(0, 2, 1, 3).reshape(ny * nx, -1)[clipped]
+        centre[clipped], scale[clipped], kept[clipped] = censored_mean_std(whole, clip_sigma)
+    return centre, scale, kept
 
 
 def _checked(image) -> np.ndarray:
@@ -118,6 +190,7 @@ def frame_background(image: np.ndarray, clip_sigma: float = 3.0) -> tuple[float,
     rays on a small share of the pixels are clipped away (:func:`clipped_mean_std`).  For Gaussian noise the level's
     standard error is about ``noise / sqrt(n)``, ``n = H W / 4`` values, and the noise's relative one about
     ``sqrt(1.5 / (2 m))``, ``m = (W - 1) H / 4`` differences (adjacent differences share a pixel: correlation -1/2).
+    A frame cut at 0 DN (module docstring) gives the Gaussian behind the cut (:func:`censored_mean_std`, all pixels).
     """
     data = _checked(image)
     data = data.reshape(-1, data.shape[-1])

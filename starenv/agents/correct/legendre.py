@@ -41,6 +41,11 @@ from starenv.sim.optics import Camera, legendre_basis, legendre_mode_count
 from starenv.sim.sky import StarCatalog
 
 ORDER = 5
+# The corrector's learner options unless told otherwise.  RLS forgets with lam = 0.98 a frame (a memory of about
+# 1 / (1 - lam) = 50 frames), so a camera whose focal length and distortion drift with temperature is followed; a
+# static field is then fitted from the last ~50 frames' stars instead of all of them (benchmarks/corrector_drift.py
+# measures both against lam).
+DEFAULT_LEARNER_OPTIONS: dict[str, dict] = {"rls": {"lam": 0.98}, "adam": {}}
 
 
 def scale_px(camera: Camera) -> float:
@@ -212,8 +217,10 @@ class LegendreCorrector:
     weights with ``learner`` (``"rls"``, ours, or ``"adam"``, the paper's) and its ``learner_options``.  ``weights``:
     an ``.npz`` of ground-trained weights (:meth:`LegendreModel.save`) to start from, or None to start from zero (the
     identity correction) at ``order``.  ``fix_rotation``: keep the rotation-like components of the weights at their
-    start values (module docstring).  A star whose label is more than ``gate_px`` from the current model's offset
-    is left out of the update (a wrong identification); a frame with fewer than ``min_stars`` is skipped.
+    start values (module docstring).  ``learner_options`` are merged over :data:`DEFAULT_LEARNER_OPTIONS` (RLS:
+    forgetting ``lam = 0.98``; ``{"lam": 1.0}`` fits every star seen, for a camera known not to drift).  A star
+    whose label is more than ``gate_px`` from the current model's offset is left out of the update (a wrong
+    identification); a frame with fewer than ``min_stars`` is skipped.
     """
 
     def __init__(self, order: int = ORDER, learner: str = "rls", weights: str | None = None, gate_px: float = 5.0,
@@ -221,7 +228,7 @@ class LegendreCorrector:
         checks.choice("learner", learner, sorted(LEARNERS))
         self.start = LegendreModel.zeros(order) if weights is None else LegendreModel.load(weights)
         self.learner_name = learner
-        self.learner_options = dict(learner_options or {})
+        self.learner_options = {**DEFAULT_LEARNER_OPTIONS[learner], **(learner_options or {})}
         LEARNERS[learner](**self.learner_options)  # options checked now, not at the first frame
         self.gate_px = checks.positive("gate_px", gate_px, "px")
         self.min_stars = checks.integer("min_stars", min_stars, 1, 10**6)
@@ -291,3 +298,15 @@ def learn_frame(corrector: LegendreCorrector, measured: np.ndarray, catalog_id: 
     attitude = Rotation.from_matrix(wahba_svd(body, inertial))
     corrector.learn(stars, head, camera, attitude, catalog)
     return attitude
+
+
+def attitude_fit_residual(model: LegendreModel, distorted: np.ndarray, catalog_id: np.ndarray, camera: Camera,
+                          catalog: StarCatalog) -> np.ndarray:
+    """Per-axis mean |corrected - reference| (2,) px of stars at their noise-free distorted positions (n, 2) px, the
+    reference projected through the attitude solved (SVD Wahba) from the corrected stars themselves: the part of the
+    distortion the model leaves that no solved attitude absorbs."""
+    corrected = model.correct(distorted, camera)
+    inertial = catalog.unit[np.searchsorted(catalog.hip, catalog_id)]
+    attitude = Rotation.from_matrix(wahba_svd(camera.mounting.inv().apply(camera.unproject(corrected)), inertial))
+    fitted = camera.project(camera.inertial_to_camera(attitude).apply(inertial))[0]
+    return np.abs(corrected - fitted).mean(axis=0)

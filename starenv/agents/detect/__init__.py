@@ -6,6 +6,10 @@ calibrated camera; the result holds the measured (distorted) pixel positions, th
 * :class:`CentroidDetector`: tiled background, matched filter, connected components, deblending; centre of gravity,
   intensity-weighted centre of gravity or a Gaussian fit; optional linking of broken faint trails.
 
+The spot a camera model carries can be measured on a frame instead, for cameras whose spot size is not calibrated
+(``starenv solve`` does so): :func:`~starenv.agents.detect.spot.measure_spot_sigma`, the Gaussian sigma of the
+frame's brightest isolated unsaturated stars.
+
 To add a detector, write a class with a ``detect`` method of that signature in a module here and name it in
 ``__all__``; the pipeline checks the protocol before it constructs the class.
 """

@@ -69,6 +69,10 @@ LINK_MIN_HALF_SIGMAS = 3.0  # streak linking: the least half-length (PSF sigmas)
 FIT_ITERATIONS = 30  # at most; the fit stops once no centre moves by FIT_TOLERANCE_PX
 FIT_TOLERANCE_PX = 1e-4
 MAX_LABELS = 2**24  # labels are carried in float32 images, exact up to here
+# Where the camera's spot varies, the matched filter changes by zones of the field whose spot sigmas lie within this
+# ratio of each other: a Gaussian filter of sigma s on a Gaussian spot of sigma s r keeps 2 r / (1 + r^2) of the
+# matched filter's signal-to-noise, >= 0.994 for the zone's geometric middle (r <= sqrt(1.25) either way).
+ZONE_SIGMA_RATIO = 1.25
 BOX = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]  # a 3 x 3 neighbourhood
 FORWARD_NEIGHBOURS = [(0, 1), (1, -1), (1, 0), (1, 1)]  # each 8-connected pixel pair once
 
@@ -116,6 +120,25 @@ def _least_median_ratio(sigma_px: float) -> float:
             bright = psf >= MEDIAN_RATIO_FLOOR * psf.max()
             least = min(least, float(np.min(ndimage.median_filter(psf, size=3)[bright] / psf[bright])))
     return least
+
+
+def local_sigma(camera: Camera, xy: np.ndarray, option: float | None = None) -> np.ndarray | None:
+    """Sigma (n,) px of the isotropic Gaussian with the mean variance of the camera's spot at ``xy`` (n, 2) px,
+    ``sqrt(sigma^2 + radial_sigma^2 / 2)``; None where the spot is the same everywhere or a detector's
+    ``psf_sigma_px`` ``option`` overrides the camera's."""
+    if camera.spot is None or option is not None:
+        return None
+    shape = camera.spot_shape(xy)
+    return np.sqrt(shape.sigma**2 + 0.5 * shape.radial_sigma**2)
+
+
+def full_scale(image: np.ndarray) -> int | None:
+    """The saturation code (DN) of an integer frame: its maximum when that is a full-scale code ``2^n - 1`` (n = 8 ..
+    16); None otherwise and for float (restored) frames, which have no full-scale code."""
+    if not np.issubdtype(image.dtype, np.integer):
+        return None
+    top = int(image.max())
+    return top if top >= 255 and (top + 1) & top == 0 else None
 
 
 class _Psf:
@@ -207,11 +230,15 @@ class CentroidDetector:
         self.link_streaks = _flag("link_streaks", link_streaks)
 
         self._psf_constants: dict[float, _Psf] = {}
+        self._zone_cache: dict[tuple, tuple[np.ndarray, list[tuple[_Psf, tuple[slice, slice]]]]] = {}
         self._work: Workspace | None = None
 
     def _psf(self, camera: Camera) -> _Psf:
         """The constants that follow from the PSF sigma in force (this detector's, else the camera's)."""
-        sigma = float(self.psf_sigma_px if self.psf_sigma_px is not None else camera.psf_sigma_px)
+        return self._psf_for(float(self.psf_sigma_px if self.psf_sigma_px is not None else camera.psf_sigma_px))
+
+    def _psf_for(self, sigma: float) -> _Psf:
+        """The constants that follow from a PSF sigma (px), computed once per sigma."""
         if sigma not in self._psf_constants:
             if not 0.2 <= sigma <= 20.0:
                 raise ValueError(f"psf_sigma_px must be in [0.2, 20] px, got the camera's {sigma}")
@@ -231,9 +258,13 @@ class CentroidDetector:
         resid = np.subtract(data, level, out=data)
         removed = self._clean_spikes(resid, noise, psf, work) if self.reject_sharp else None
         smooth = work.array("smooth", np.float32)
-        cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, dst=smooth, borderType=cv2.BORDER_REFLECT)
+        zones = self._zones(camera)
+        if zones is None:
+            cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, dst=smooth, borderType=cv2.BORDER_REFLECT)
+            limit = np.multiply(noise, np.float32(self.threshold_sigma * psf.filter_noise), out=work.array("limit"))
+        else:
+            limit = self._zoned_filter(resid, noise, zones, smooth, work.array("limit"))
         signal = smooth if self.matched_filter else resid
-        limit = np.multiply(noise, np.float32(self.threshold_sigma * psf.filter_noise), out=work.array("limit"))
         found = components_above(signal, limit, self.min_area_px, self.max_area_px, work)
         n_label, pixel, component, kept = found.count, found.pixel, found.label, found.kept
         if len(kept) == 0:
@@ -278,12 +309,55 @@ class CentroidDetector:
             if saturation is not None:
                 saturated = np.bincount(blobs.label, image.ravel()[blobs.pixel] >= saturation, n) > 0
             fit = np.flatnonzero(good & ~streak & ~saturated)
-            xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit], psf)
+            xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit], psf,
+                                          local_sigma(camera, xy[fit], self.psf_sigma_px))
         flux = blobs.flux
         if self.link_streaks:
             xy, flux, good = _link_streaks(xy, flux, good, streak, centre, axis, var_major, psf.sigma_eff)
         order = np.flatnonzero(good)[np.argsort(-flux[good], kind="stable")][: self.max_stars]
         return StarMeasurements(xy[order], flux[order])
+
+    def _zones(self, camera: Camera) -> tuple[np.ndarray, list[tuple[_Psf, tuple[slice, slice]]]] | None:
+        """Where the camera's spot varies across the field (and neither this detector's ``psf_sigma_px`` nor
+        ``matched_filter=False`` says otherwise): each pixel's zone (H, W), and per zone the filter of its middle spot
+        sigma (:func:`local_sigma`, zones ``ZONE_SIGMA_RATIO`` wide) with the box (rows, cols) its pixels and the
+        filter's reach span.  None otherwise.  Computed once per camera."""
+        if camera.spot is None or self.psf_sigma_px is not None or not self.matched_filter:
+            return None
+        key = (camera.spot, camera.psf_sigma_px, camera.cx, camera.cy, camera.width, camera.height)
+        if key not in self._zone_cache:
+            rows, cols = np.mgrid[: camera.height, : camera.width]
+            sigma = local_sigma(camera, np.stack([cols.ravel(), rows.ravel()], axis=1)).reshape(rows.shape)
+            low = float(sigma.min())
+            zone = np.floor(np.log(sigma / low) / math.log(ZONE_SIGMA_RATIO) + 1e-9).astype(np.intp)
+            filters = []
+            for k in range(int(zone.max()) + 1):
+                inside = zone == k
+                if not inside.any():
+                    filters.append((None, (slice(0, 0), slice(0, 0))))
+                    continue
+                zone_psf = self._psf_for(min(low * ZONE_SIGMA_RATIO ** (k + 0.5), float(sigma[inside].max())))
+                r = zone_psf.radius_px
+                ys, xs = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+                box = (slice(max(ys[0] - r, 0), ys[-1] + r + 1), slice(max(xs[0] - r, 0), xs[-1] + r + 1))
+                filters.append((zone_psf, box))
+            self._zone_cache[key] = (zone, filters)
+        return self._zone_cache[key]
+
+    def _zoned_filter(self, resid: np.ndarray, noise: np.ndarray, zones, smooth: np.ndarray,
+                      limit: np.ndarray) -> np.ndarray:
+        """The matched filter zone by zone into ``smooth`` (each zone's box, grown by its kernel's reach, filtered as
+        the whole frame would be) and the detection limit per pixel into ``limit`` (its zone's filter noise)."""
+        zone, filters = zones
+        for k, (zone_psf, box) in enumerate(filters):
+            if zone_psf is None:
+                continue
+            part = cv2.sepFilter2D(resid[box], cv2.CV_32F, zone_psf.kernel, zone_psf.kernel,
+                                   borderType=cv2.BORDER_REFLECT)
+            inside = zone[box] == k
+            smooth[box][inside] = part[inside]
+            limit[box][inside] = noise[box][inside] * np.float32(self.threshold_sigma * zone_psf.filter_noise)
+        return limit
 
     def background(self, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Local background level and noise (DN) of a float32 image, both float32 (H, W): the block
@@ -312,12 +386,7 @@ class CentroidDetector:
 
     def _saturation(self, image: np.ndarray) -> int | None:
         """The saturation level (DN) in force for ``image``; None when no pixel counts as saturated."""
-        if self.saturation_dn is not None:
-            return self.saturation_dn
-        if not np.issubdtype(image.dtype, np.integer):  # a restored (float) image has no full-scale code
-            return None
-        top = int(image.max())
-        return top if top >= 255 and (top + 1) & top == 0 else None
+        return self.saturation_dn if self.saturation_dn is not None else full_scale(image)
 
     def _clean_spikes(
         self, resid: np.ndarray, noise: np.ndarray, psf: _Psf, work: Workspace
@@ -485,15 +554,24 @@ class CentroidDetector:
         return spread & ~track
 
     def _fit_gaussians(
-        self, resid: np.ndarray, grown: np.ndarray, which: np.ndarray, start: np.ndarray, flux: np.ndarray, psf: _Psf
+        self, resid: np.ndarray, grown: np.ndarray, which: np.ndarray, start: np.ndarray, flux: np.ndarray, psf: _Psf,
+        spot_sigma: np.ndarray | None = None,
     ) -> np.ndarray:
         """Centres (n, 2) px of pixel-integrated Gaussians fitted (Levenberg-Marquardt, all blobs at once) on square
         windows around ``start``, leaving out pixels off the image or in another blob.  A fit that fails (centre
-        moved by more than a PSF sigma + 1 px, width outside [0.5, 3] PSF sigmas) keeps ``start``."""
+        moved by more than a PSF sigma + 1 px, width outside [0.5, 3] PSF sigmas) keeps ``start``.  ``spot_sigma``
+        (n,): each star's spot sigma where it is (a field-dependent spot, :func:`local_sigma`), which the fit starts
+        from and is bounded by, and whose largest sets the window; None: the PSF's everywhere."""
         if len(which) == 0:
             return start
+        if spot_sigma is None:
+            sigma0, log0 = psf.sigma_px, np.full(len(which), math.log(psf.sigma_px))
+            reach, radius = psf.sigma_eff, psf.radius_px
+        else:
+            sigma0, log0, reach = spot_sigma, np.log(spot_sigma), np.sqrt(spot_sigma**2 + 1.0 / 12.0)
+            radius = max(psf.radius_px, math.ceil(3.0 * float(reach.max())))
         height, width = resid.shape
-        offsets = np.arange(-psf.radius_px, psf.radius_px + 1)
+        offsets = np.arange(-radius, radius + 1)
         middle = np.rint(start).astype(np.intp)
         cols, rows = middle[:, 0, None] + offsets, middle[:, 1, None] + offsets  # (n, k)
         on = ((cols >= 0) & (cols < width))[:, None, :] & ((rows >= 0) & (rows < height))[:, :, None]
@@ -503,9 +581,9 @@ class CentroidDetector:
         data = resid[rr, cc].reshape(len(which), -1).astype(np.float64)
 
         params = np.column_stack(
-            [np.maximum(flux, 1e-3), start - middle, np.full(len(which), math.log(psf.sigma_px))]
+            [np.maximum(flux, 1e-3), start - middle, log0]
         )
-        model, jac = _gaussian_model(params, offsets)
+        model, jac = pixel_gaussians(params, offsets)
         res = (data - model) * weight
         cost = np.einsum("np,np->n", res, res)
         damping = np.full(len(which), 1e-3)
@@ -516,7 +594,7 @@ class CentroidDetector:
             diag = np.einsum("nii->ni", normal)
             step = np.linalg.solve(normal + (damping[:, None] * diag + 1e-12)[:, :, None] * np.eye(4), grad)
             trial = params + step[..., 0]
-            trial_model, trial_jac = _gaussian_model(trial, offsets)
+            trial_model, trial_jac = pixel_gaussians(trial, offsets)
             trial_res = (data - trial_model) * weight
             trial_cost = np.einsum("np,np->n", trial_res, trial_res)
             better = trial_cost < cost  # False where NaN
@@ -528,15 +606,15 @@ class CentroidDetector:
         centre = params[:, 1:3] + middle
         sigma = np.exp(params[:, 3])
         ok = (
-            (np.hypot(*(centre - start).T) < psf.sigma_eff + 1.0)
-            & (sigma > 0.5 * psf.sigma_px)
-            & (sigma < 3.0 * psf.sigma_px)
+            (np.hypot(*(centre - start).T) < reach + 1.0)
+            & (sigma > 0.5 * sigma0)
+            & (sigma < 3.0 * sigma0)
             & (params[:, 0] > 0)
         )
         return np.where(ok[:, None], centre, start)
 
 
-def _gaussian_model(params: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pixel_gaussians(params: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixel-integrated 2-D Gaussians on square windows, and their Jacobians.
 
     ``params`` (n, 4): flux (DN), centre x and y relative to the window's middle pixel (px), ln(sigma / 1 px);

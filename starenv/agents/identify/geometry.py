@@ -13,6 +13,10 @@ from starenv.agents.base import StarMeasurements
 from starenv.sim.optics import Camera
 
 MERGE_PX = 2.0  # a star closer than this (px, coarsest head) to a brighter one is taken as part of it
+# A centroid with Gaussian noise of sigma per axis lies beyond r of its star with probability exp(-r^2 / (2 sigma^2))
+# (Rayleigh): beyond this many sigmas with probability 1e-4.  A star with two detections within it cannot tell which
+# is its own (:func:`sole_per_star`).
+CLAIM_SIGMAS = math.sqrt(2.0 * math.log(1e4))
 EDGE_FROM, EDGE_TO = np.triu_indices(4, 1)  # the six edges of a pattern: 01, 02, 03, 12, 13, 23
 STAR_ORDERS = np.array(list(itertools.permutations(range(4))))  # (24, 4)
 EDGE_OF = np.zeros((4, 4), dtype=np.intp)  # edge number of a star pair
@@ -72,6 +76,15 @@ def closest_per_star(rows: np.ndarray, star: np.ndarray, distance: np.ndarray) -
         keep = np.sort(order[first])
         rows, stars = rows[keep], stars[keep]
     return rows, stars
+
+
+def sole_per_star(rows: np.ndarray, star: np.ndarray, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``rows`` (ascending) and their stars, of rows paired with star ``star[row]``, less every row whose star has
+    two detections or more near it (``near``: per star, the detections within ``CLAIM_SIGMAS`` centroid sigmas of
+    it): two detections by one star are a star the catalogue merged into it or left out and the star, and which one
+    is the star's is a guess (with centroid noise the nearer is often the other)."""
+    alone = near[star[rows]] <= 1
+    return rows[alone], star[rows[alone]]
 
 
 def same_matches(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:

@@ -28,24 +28,26 @@ Method
     detections in all heads, ``m`` of them within ``match_radius_px`` of a catalogue star (pattern stars included)
     and ``p`` the chance that a random detection lands that close to one (local catalogue density times the match
     area), the probability of a false match is ``P(X >= m - 2)`` for ``X ~ Binomial(n, p)``; hypotheses below
-    ``match_threshold`` are verified.  Of the verified hypotheses of the first breadth-first step that has any, the
-    one matching most detections wins; when one head has four detections or more (the common case), the quads of the
-    first step are looked up one at a time instead, in plain numbers (a few quads cost less so than as arrays), and the
-    first verified one wins (two verified attitudes in one step would mean a false match).  Matching and refining the
-    attitude then alternate, the search widened by the attitude's uncertainty (a pattern in one small field leaves the
-    roll about it loose, which moves the stars of the other heads), and every detection within the labelling radius of
-    a catalogue star is labelled (one detection a star, the closest; a detection with two catalogue stars within its
-    radius is left unidentified: which one made it is a guess).  The labelling radius is the match radius, widened
-    when the scatter of the matched detections about their stars (measured under the refined attitude, on 8 pairs or
-    more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1 px of noise per axis, the 3 px default
-    alone would leave about 1 % of the stars unlabelled (``exp(-4.5)``).  Verifying, refining and labelling
-    compare the detections with the labelling stars (the database's first) of a cone about each head's boresight,
-    found once for all three, by brute force (both sets are small), rather than through a k-d tree query a detection;
-    for one head the cone's stars are those listed for the sky cell of its boresight (the sky split into cells on a
-    cube's faces, each listing the stars within a head's reach of any of its points; made by :meth:`reset`).  A cell
-    also bounds the database stars within half a field of any of its points: verification tries ``p`` from that bound
-    first and counts the stars only when it fails (the false-match probability grows with ``p``, so what passes with
-    the bound passes with the count: the same hypotheses are verified).
+    ``match_threshold`` are verified (a frame's chance of accepting a wrong attitude is then at most the number of
+    hypotheses it tests times ``match_threshold``, by the union bound).  Of the verified hypotheses of the first
+    breadth-first step that has any, the one matching most detections wins; when one head has four detections or more
+    (the common case), the quads of the first step are looked up one at a time instead, in plain numbers (a few quads
+    cost less so than as arrays), and the first verified one wins (two verified attitudes in one step would mean a
+    false match).  Matching and refining the attitude then alternate, the search widened by the attitude's uncertainty
+    (a pattern in one small field leaves the roll about it loose, which moves the stars of the other heads), and
+    every detection within the labelling radius of a catalogue star is labelled (a detection with two catalogue stars
+    within its radius, or a star with two detections within ``CLAIM_SIGMAS`` centroid sigmas, is left unidentified:
+    which one made it is a guess; of two detections further apart the closest is the star's).  The labelling radius is
+    the match radius, widened when the scatter of the matched detections about their stars (measured under the
+    refined attitude, on 8 pairs or more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1 px of
+    noise per axis, the 3 px default alone would leave about 1 % of the stars unlabelled (``exp(-4.5)``).  Verifying,
+    refining and labelling compare the detections with the labelling stars (the database's first) of a cone about
+    each head's boresight, found once for all three, by brute force (both sets are small), rather than through a k-d
+    tree query a detection; for one head the cone's stars are those listed for the sky cell of its boresight (the sky
+    split into cells on a cube's faces, each listing the stars within a head's reach of any of its points; made by
+    :meth:`reset`).  A cell also bounds the database stars within half a field of any of its points: verification
+    tries ``p`` from that bound first and counts the stars only when it fails (the false-match probability grows with
+    ``p``, so what passes with the bound passes with the count: the same hypotheses are verified).
 
     A star closer than ``MERGE_PX`` pixels to a brighter one is taken as part of it (the sensor sees one star):
     detections are matched to the brighter only.
@@ -82,6 +84,7 @@ from starenv.agents.identify.database import (
     load_database,
 )
 from starenv.agents.identify.geometry import (
+    CLAIM_SIGMAS,
     EDGE_FROM,
     EDGE_TO,
     IDENTITY,
@@ -92,6 +95,7 @@ from starenv.agents.identify.geometry import (
     closest_per_star,
     resolvable,
     same_matches,
+    sole_per_star,
     with_ids,
 )
 from starenv.sim.optics import Camera, NoDistortion
@@ -359,13 +363,19 @@ class LostInSpaceIdentifier:
                 if len(set(detections)) < len(detections):  # some with two or more: left out
                     alone = np.bincount(detection, minlength=len(ids))[detection] == 1
                     detection, star = detection[alone], star[alone]
-                stars_hit = star.tolist()
-                if len(set(stars_hit)) < len(stars_hit):  # a star with several detections keeps the closest
-                    dot = np.full(len(ids), -np.inf)
-                    dot[detection] = dots[detection, star]
-                    star_of = np.zeros(len(ids), dtype=np.intp)
-                    star_of[detection] = star
-                    detection, star = closest_per_star(detection, star_of, -dot)
+                # Each star's closest detection; a star with a second one within CLAIM_SIGMAS of the centroid
+                # scatter (measured on those closest pairs, in match radii squared per axis) labels neither.
+                dot = np.full(len(ids), -np.inf)
+                dot[detection] = dots[detection, star]
+                star_of = np.zeros(len(ids), dtype=np.intp)
+                star_of[detection] = star
+                detection, star = closest_per_star(detection, star_of, -dot)
+                radius2 = frame.radius2 if scalar else frame.radius2[detection]
+                variance = (self.centroid_noise_px / self.match_radius_px) ** 2
+                if len(detection) >= _SCATTER_PAIRS:
+                    variance = float(np.mean((1.0 - dot[detection]) / radius2))
+                claim2 = CLAIM_SIGMAS**2 * variance * (frame.radius2 if scalar else frame.radius2[:, None])
+                detection, star = sole_per_star(detection, star_of, (dots >= 1.0 - 0.5 * claim2).sum(axis=0))
                 ids[detection] = (self._label_hip[nearby.rows] if nearby.hip is None else nearby.hip)[star]
         if len(stars) == 1:
             return [StarMeasurements(stars[0].xy.copy(), stars[0].flux.copy(), ids)]

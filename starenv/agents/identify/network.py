@@ -1,19 +1,27 @@
 """Paper 002's network as an identifier: the raw frame in, catalogue ids of the detections out, every answer verified.
 
-1. The network reads head 0's raw frame and ranks the navigation stars as the one on the boresight (the paper's
-   "main star"); the ``top_k`` best are tried in turn.
-2. A candidate fixes the boresight direction but not the roll.  The catalogue stars about it are projected at roll
-   0; each (detection, catalogue star) pair at the same distance from the principal point (within
-   ``radius_px``) votes for the roll that turns one onto the other, and the ``rolls`` most voted rolls are kept.
-3. Each (main star, roll) attitude is verified against the catalogue (:mod:`starenv.agents.identify.verify`): detections
-   paired within ``radius_px``, the attitude refined, and the false-match probability, times the hypotheses tried,
-   compared with ``max_false``; ``min_matches`` pairs are needed.  The first verified hypothesis labels the
-   detections; when none verifies, nothing is identified (a wrong main star never becomes an attitude).
+1. The network reads head 0's raw frame, preprocessed as in training (:func:`starenv.datasets.preprocess.network_input`:
+   the whole frame area-resized to the network's input, background subtracted), and ranks the navigation stars as
+   the one nearest the image centre (the paper's "main star"); the ``top_k`` best are tried in turn.
+2. A candidate is put on each of the ``centre_stars`` detections nearest the principal point in turn, which fixes
+   the attitude but for a turn about that detection's direction.  Each (detection, catalogue star) pair at the same
+   angle from the main star's detection and from the main star (within ``radius_px``) votes for the turn that brings
+   one onto the other; the ``rolls`` most voted (detection, turn) pairs of the candidate are kept.
+3. Each (main star, roll) attitude is verified against the catalogue
+   (:func:`starenv.agents.identify.verify.verify_any_search`): detections paired within ``radius_px`` and the
+   attitude refined until the pairs settle, then paired and refined again within ``verify_radius_px``; the bound on
+   the probability that a wrong attitude pairs that many detections, whatever search found it (``top_k`` sky regions
+   times the two-pair hypotheses of the field, each ``P(X >= m - 2)``, ``X ~ Binomial(n - 2, p)``, ``p`` from the
+   catalogue's stars in the field and ``verify_radius_px``), must be at most ``max_false`` (default 1e-5, the
+   tracking identifier's), with ``min_matches`` pairs.  The first verified hypothesis labels the detections; when
+   none verifies, nothing is identified (a wrong main star or a flipped roll never becomes an attitude).
 
 The candidates' directions come from Hipparcos itself, the verification uses the catalogue handed to
-:meth:`reset`.  The network only knows the frames it was trained on: the camera must have the training field of
-view (checked at :meth:`reset`) and the boresight should sit near a navigation star of its classes (the paper's
-protocol), in the sky region the weights cover.  The frame reaches the identifier through ``images`` (each head's
+:meth:`reset`.  The network only knows the frames it was trained on: head 0 must be the training camera (its
+resolution and field of view, from the weights' manifest, checked at :meth:`reset`; another is refused), and the
+boresight must lie in the sky region the weights' classes cover.
+
+The frame reaches the identifier through ``images`` (each head's
 frame as the detector saw it, which the pipeline passes); without it nothing is identified.
 """
 
@@ -33,8 +41,8 @@ from scipy.spatial.transform import Rotation
 from starenv.agents.base import StarMeasurements
 from starenv.agents.identify.geometry import body_vectors, with_ids
 from starenv.agents.identify.network_model import MAX_PARAMETERS, MainStarConfig, MainStarNet, parameter_count
-from starenv.agents.identify.verify import verify
-from starenv.sim.conventions import pointing, unit_to_radec
+from starenv.agents.identify.verify import verify_any_search
+from starenv.datasets.preprocess import network_input
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog, load_catalog
 
@@ -91,7 +99,38 @@ def _checked_manifest(path: Path) -> dict:
         if not (isinstance(fov, list) and len(fov) == 2
                 and all(isinstance(a, int | float) and not isinstance(a, bool) and 0 < a < 180 for a in fov)):
             raise ValueError(f"{path}: camera.fov_deg: expected two angles in (0, 180) deg, got {fov!r}")
+        for key in ("width", "height"):
+            if not (type(camera.get(key)) is int and camera[key] > 0):
+                raise ValueError(f"{path}: camera.{key}: expected a positive number of pixels, got {camera.get(key)!r}")
     return manifest
+
+
+def shipped_weights(weights: str | Path) -> Path:
+    """The run folder ``weights`` names: a folder, or else the name of a shipped run (``paper002_orion``) in
+    :data:`WEIGHTS_DIR`, so that scenario and bench files can name shipped weights without a path."""
+    path = Path(weights)
+    if not path.exists() and path.name == str(weights) and (WEIGHTS_DIR / path.name).is_dir():
+        return WEIGHTS_DIR / path.name
+    return path
+
+
+FOV_TOLERANCE = 0.02  # relative: the training field within 2 % (the same optics; a focal length rounded elsewhere)
+
+
+def check_camera(trained: dict | None, cam: Camera, weights: Path) -> None:
+    """Refuse a head 0 that is not the camera the weights were trained on (its manifest's ``camera``: resolution and
+    field of view, which with the config's ``input_size`` fix the preprocessing): a ValueError naming both."""
+    if trained is None:
+        raise ValueError(f"NetworkIdentifier: {weights}: its manifest records no training camera, so head 0 cannot "
+                         f"be checked against it; train it again with `starenv train`")
+    fov = [math.degrees(a) for a in cam.fov]
+    want = trained["fov_deg"]
+    if (cam.width, cam.height) != (trained["width"], trained["height"]) or any(
+            abs(a - b) > FOV_TOLERANCE * b for a, b in zip(fov, want, strict=True)):
+        raise ValueError(f"NetworkIdentifier: the weights {weights.name} were trained for a {trained['width']} x "
+                         f"{trained['height']} px, {want[0]:.2f} x {want[1]:.2f} deg camera; head 0 is {cam.width} x "
+                         f"{cam.height} px, {fov[0]:.2f} x {fov[1]:.2f} deg (train weights for this sensor: "
+                         f"docs/paper002_identification.md)")
 
 
 def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> tuple[MainStarNet, dict]:
@@ -134,36 +173,40 @@ def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> t
 class NetworkIdentifier:
     """Lost-in-space identification by paper 002's network plus catalogue verification (see the module docstring).
 
-    ``weights``: a run folder of ``starenv train`` (default: the shipped paper002_orion weights); ``top_k``: main-star
-    candidates tried; ``rolls``: roll hypotheses per candidate; ``radius_px``: pairing radius (px);
-    ``min_matches``: pairs needed; ``max_false``: largest accepted false-match probability (all hypotheses);
+    ``weights``: a run folder of ``starenv train`` or a shipped run's name (default: the shipped paper002_orion
+    weights); ``top_k``: main-star candidates tried; ``rolls``: roll hypotheses per candidate; ``radius_px``:
+    pairing radius of the search (px);
+    ``verify_radius_px``: pairing radius of the verification, the bound's (px); ``min_matches``: pairs needed;
+    ``max_false``: largest accepted bound on the probability of a wrong attitude per frame;
+    ``centre_stars``: detections nearest the principal point each candidate is put on;
     ``threads``: torch's CPU thread count, set for the whole process (one frame at a time: one thread is fastest,
     and on a loaded machine threads that wait for busy cores slow a forward pass many times; None leaves torch's
     setting).
     """
 
     def __init__(self, weights: str | Path = DEFAULT_WEIGHTS, device: str = "cpu", top_k: int = 3, rolls: int = 3,
-                 radius_px: float = 2.0, min_matches: int = 5, max_false: float = 1e-3, threads: int | None = 1):
-        if top_k < 1 or rolls < 1 or min_matches < 2:
-            raise ValueError(f"top_k, rolls >= 1 and min_matches >= 2 expected, got {top_k}, {rolls}, {min_matches}")
-        if not radius_px > 0 or not 0 < max_false < 1:
-            raise ValueError(f"radius_px > 0 and max_false in (0, 1) expected, got {radius_px}, {max_false}")
+                 radius_px: float = 2.0, min_matches: int = 5, max_false: float = 1e-5, threads: int | None = 1,
+                 centre_stars: int = 5, verify_radius_px: float = 1.0):
+        if top_k < 1 or rolls < 1 or min_matches < 2 or centre_stars < 1:
+            raise ValueError(f"top_k, rolls, centre_stars >= 1 and min_matches >= 2 expected, got {top_k}, {rolls}, "
+                             f"{centre_stars}, {min_matches}")
+        if not radius_px > 0 or not verify_radius_px > 0 or not 0 < max_false < 1:
+            raise ValueError(f"radius_px, verify_radius_px > 0 and max_false in (0, 1) expected, got {radius_px}, "
+                             f"{verify_radius_px}, {max_false}")
         if threads is not None:
             torch.set_num_threads(threads)
-        self.net, self.manifest = load_network(weights, device)
+        self.weights = shipped_weights(weights)
+        self.net, self.manifest = load_network(self.weights, device)
+        self.centre_stars = centre_stars
         self.device = device
         self.classes = np.asarray(self.manifest["classes_hip"], dtype=np.int64)
         self.top_k, self.rolls, self.radius_px = top_k, rolls, radius_px
-        self.min_matches, self.max_false = min_matches, max_false
+        self.min_matches, self.max_false, self.verify_radius_px = min_matches, max_false, verify_radius_px
         self.catalog: StarCatalog | None = None
         self.last: dict = {}
 
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
-        fov = math.degrees(cameras[0].fov[0])
-        trained = self.manifest.get("camera", {}).get("fov_deg")
-        if trained is not None and abs(fov - trained[0]) > 0.02 * trained[0]:
-            raise ValueError(f"NetworkIdentifier: head 0's field is {fov:.2f} deg, the network was trained on "
-                             f"{trained[0]:.2f} deg")
+        check_camera(self.manifest.get("camera"), cameras[0], self.weights)
         sky = load_catalog(CLASS_MAG_LIMIT, catalog.epoch)
         missing = np.setdiff1d(self.classes, sky.hip)
         if len(missing):
@@ -176,7 +219,7 @@ class NetworkIdentifier:
     @torch.no_grad()
     def rank(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Navigation stars (HIP) ranked as the boresight star of a raw frame, and their softmax probabilities."""
-        x = torch.from_numpy(np.asarray(image, dtype=np.int32))[None]
+        x = torch.from_numpy(network_input(image, self.net.config.input_size))[None]
         prob = torch.softmax(self.net(x.to(self.device)), dim=1)[0].cpu().numpy()
         order = np.argsort(-prob, kind="stable")
         return self.classes[order], prob[order]
@@ -195,46 +238,65 @@ class NetworkIdentifier:
         ranked, prob = self.rank(images[0])
         self.last["forward_s"] = time.perf_counter() - t0
         self.last["ranked"], self.last["prob"] = ranked[: self.top_k], prob[: self.top_k]
-        cam = cameras[0]
-        det = stars[0].xy
-        hypotheses = []
-        for hip in ranked[: self.top_k]:
-            ra, dec = unit_to_radec(self.class_unit[int(hip)])
-            cam0 = pointing(float(ra), float(dec), 0.0)
-            for roll in self._rolls(cam, cam0, det):
-                hypotheses.append((hip, cam.mounting.inv() * pointing(float(ra), float(dec), roll)))
-        trials = max(1, len(hypotheses))
+        hypotheses = self._hypotheses(cameras[0], stars[0].xy, ranked[: self.top_k])
         for hip, attitude in hypotheses:
-            v = verify(attitude, body, heads, cameras, self.catalog, self.radius_px, given=1)
-            if v.matched >= self.min_matches and v.p_false * trials <= self.max_false:
-                self.last.update(main=int(hip), verified=True, attitude=v.attitude, p_false=v.p_false)
+            v = verify_any_search(attitude, body, heads, cameras, self.catalog, self.radius_px,
+                                  self.verify_radius_px, regions=self.top_k)
+            if v.matched >= self.min_matches and v.p_false <= self.max_false:
+                self.last.update(main=int(hip), verified=True, attitude=v.attitude, p_false=v.p_false,
+                                 matched=v.matched)
                 return with_ids(stars, v.ids)
         return none
 
-    def _rolls(self, cam: Camera, cam0: Rotation, det: np.ndarray) -> list[float]:
-        """The ``rolls`` most voted rolls (rad) putting catalogue stars about the boresight onto detections."""
-        if len(det) == 0:
+    def _hypotheses(self, cam: Camera, det: np.ndarray, candidates: np.ndarray) -> list[tuple[int, Rotation]]:
+        """(main star HIP, inertial -> body attitude) hypotheses of head 0's detections ``det`` (px): for each
+        candidate in turn, its ``rolls`` most voted (detection, turn) pairs (see the module docstring)."""
+        if len(det) < 2:
             return []
-        axis = cam0.inv().apply([0.0, 0.0, 1.0])
-        rows = self.catalog.cone(axis, cam.half_diagonal)
-        xy, front = cam.project(cam0.apply(self.catalog.unit[rows]))
-        xy = xy[front]
-        c = np.array([cam.cx, cam.cy])
-        rc, ac = np.hypot(*(xy - c).T), np.arctan2(*(xy - c).T[::-1])
-        rd, ad = np.hypot(*(det - c).T), np.arctan2(*(det - c).T[::-1])
-        i, j = np.nonzero(np.abs(rd[:, None] - rc[None, :]) <= self.radius_px)
-        keep = rd[i] > 3 * self.radius_px  # the azimuth of a star near the centre says little about the roll
-        i, j = i[keep], j[keep]
-        if not len(i):
-            return []
-        roll = np.mod(ac[j] - ad[i], 2 * np.pi)  # pointing(roll) turns the image by -roll
-        tol = self.radius_px / rd[i]
-        diff = np.abs(np.angle(np.exp(1j * (roll[:, None] - roll[None, :]))))
-        votes = (diff <= tol[None, :]).sum(axis=1)
-        chosen: list[float] = []
-        for k in np.argsort(-votes, kind="stable"):
-            if all(abs(np.angle(np.exp(1j * (roll[k] - r)))) > 2 * tol[k] for r in chosen):
-                chosen.append(float(roll[k]))
-            if len(chosen) == self.rolls:
-                break
-        return chosen
+        units = cam.unproject(det)  # camera frame
+        tol = self.radius_px / max(cam.fx, cam.fy)  # rad
+        centre = np.argsort(np.hypot(det[:, 0] - cam.cx, det[:, 1] - cam.cy), kind="stable")[: self.centre_stars]
+        out = []
+        for hip in candidates:
+            star = self.class_unit[int(hip)]
+            rows = self.catalog.cone(star, min(np.pi, 2.0 * cam.half_diagonal))
+            ref = self.catalog.unit[rows]
+            ref_angle, ref_azimuth, ref_frame = _polar(star, ref)
+            votes = []
+            for rank, m in enumerate(centre):
+                angle, azimuth, frame = _polar(units[m], units)
+                i, j = np.nonzero(np.abs(angle[:, None] - ref_angle[None, :]) <= tol)
+                keep = (i != m) & (angle[i] > 3 * tol)  # an azimuth next to the main star says little about the turn
+                i, j = i[keep], j[keep]
+                if not len(i):
+                    continue
+                turn = np.mod(azimuth[i] - ref_azimuth[j], 2 * np.pi)
+                width = tol / np.sin(angle[i])
+                diff = np.abs(np.angle(np.exp(1j * (turn[:, None] - turn[None, :]))))
+                count = (diff <= width[None, :]).sum(axis=1)
+                chosen: list[float] = []
+                for k in np.argsort(-count, kind="stable"):
+                    if all(abs(np.angle(np.exp(1j * (turn[k] - t)))) > 2 * width[k] for t in chosen):
+                        chosen.append(float(turn[k]))
+                        votes.append((-int(count[k]), rank, frame, float(turn[k])))
+                    if len(chosen) == self.rolls:
+                        break
+            for _, _, frame, turn in sorted(votes, key=lambda v: v[:2])[: self.rolls]:
+                c, s = math.cos(turn), math.sin(turn)
+                turned = np.column_stack([frame[:, 0], c * frame[:, 1] + s * frame[:, 2],
+                                          -s * frame[:, 1] + c * frame[:, 2]])
+                inertial_to_cam = Rotation.from_matrix(turned @ ref_frame.T)
+                out.append((int(hip), cam.mounting.inv() * inertial_to_cam))
+        return out
+
+
+def _polar(axis: np.ndarray, units: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Angles (rad) of ``units`` from ``axis``, their azimuths (rad) about it, and the frame [axis, e1, e2] (columns,
+    right-handed) the azimuths are measured in."""
+    axis = axis / np.linalg.norm(axis)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(helper, axis)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    cos = np.clip(units @ axis, -1.0, 1.0)
+    return np.arccos(cos), np.arctan2(units @ e2, units @ e1), np.column_stack([axis, e1, e2])

@@ -3,9 +3,10 @@ the navigation star on the boresight (the "main star") out.
 
 Architecture (paper, Figs. 4-6 and Eqs. 6-11), every size a field of :class:`MainStarConfig`:
 
-* preprocessing: the raw frame (DN) is area-resized to ``input_size`` (paper: 1024 -> 256), its median (the
-  background) subtracted and the result compressed as ``asinh(x / scale_dn)``; the paper's "normalised with a mean
-  and variance of 0.1" does not fix a scale for raw DN, so this is a choice.
+* preprocessing: the raw frame (DN) is area-resized to ``input_size`` (paper: 1024 -> 256) and its median (the
+  background) subtracted, in numpy, before the network (:func:`starenv.datasets.preprocess.network_input`, shared by
+  the dataset generator and the identifier); the network compresses its input as ``asinh(x / scale_dn)``.  The
+  paper's "normalised with a mean and variance of 0.1" does not fix a scale for raw DN, so this is a choice.
 * feature extractor: a 3x3 stem convolution, a stride-2 max-pool and six ResNet basic blocks (two 3x3 convolutions,
   BatchNorm, ReLU; a 1x1 projection shortcut where the shape changes), blocks 1, 3 and 5 with stride 2: four
   down-samplings, ``input_size / 16`` squared tokens of ``widths[-1]`` = D channels (paper: 256 -> 64 x 16 x 16).
@@ -146,7 +147,8 @@ class EncoderBlock(nn.Module):
 
 
 class MainStarNet(nn.Module):
-    """Raw frames (B, H, W) or (B, 1, H, W) in DN -> class logits (B, n_classes)."""
+    """Network inputs (B, S, S) or (B, 1, S, S), S = ``input_size`` (DN above the background, as
+    :func:`~starenv.datasets.preprocess.network_input` makes them from raw frames) -> class logits (B, n_classes)."""
 
     def __init__(self, config: MainStarConfig):
         super().__init__()
@@ -166,17 +168,17 @@ class MainStarNet(nn.Module):
         self.norm = nn.LayerNorm(c.dim)
         self.head = nn.Linear(c.dim, c.n_classes)
 
-    def preprocess(self, frames: torch.Tensor) -> torch.Tensor:
-        """Raw DN frames -> the network's normalised (B, 1, input_size, input_size) input (see the module doc)."""
-        x = frames.float()
+    def preprocess(self, inputs: torch.Tensor) -> torch.Tensor:
+        """Network inputs (DN above the background) -> the compressed (B, 1, input_size, input_size) tensor;
+        elementwise, so deterministic on every device."""
+        x = inputs.float()
         if x.dim() == 3:
             x = x.unsqueeze(1)
         size = self.config.input_size
-        if x.shape[-2:] != (size, size):
-            x = F.adaptive_avg_pool2d(x, size) if x.shape[-1] % size == 0 == x.shape[-2] % size else F.interpolate(
-                x, size=(size, size), mode="area")
-        background = x.flatten(1).median(dim=1).values.view(-1, 1, 1, 1)
-        return torch.asinh((x - background) / self.config.scale_dn)
+        if x.dim() != 4 or x.shape[1:] != (1, size, size):
+            raise ValueError(f"MainStarNet: expected inputs (B, {size}, {size}) (network_input of the frames), got "
+                             f"{tuple(inputs.shape)}")
+        return torch.asinh(x / self.config.scale_dn)
 
     def features(self, frames: torch.Tensor) -> torch.Tensor:
         """The CNN's feature map (B, D, input_size / 16, input_size / 16)."""

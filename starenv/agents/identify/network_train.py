@@ -1,12 +1,17 @@
 """``starenv train``: train paper 002's network on a ``main_star`` dataset, seeded, checkpointed and resumable.
 
     starenv train --data DATA --out RUN [--val VAL] [--epochs N] [--batch B] [--lr LR] [--seed S]
-                  [--device cpu|cuda] [--set key=value ...] [--rot90] [--max-minutes M] [--resume] [--init RUN]
+                  [--device cpu|cuda] [--workers N] [--preload auto|yes|no] [--set key=value ...] [--rot90]
+                  [--max-minutes M] [--resume] [--init RUN]
 
-* Deterministic on CPU: ``torch.manual_seed(seed)``, ``torch.use_deterministic_algorithms(True)``, data read in
-  this process in an order that depends only on (seed, epoch)
-  (:class:`~starenv.agents.identify.network_data.ShardSampler`);
-  the same command gives bit-identical weights.  ``--rot90`` turns each image by a multiple of 90 deg about its
+* Deterministic: ``torch.manual_seed(seed)``, ``torch.use_deterministic_algorithms(True)``, batches in an order that
+  depends only on (seed, epoch) (:class:`~starenv.agents.identify.network_data.ShardSampler`), read by ``--workers``
+  ``DataLoader`` processes (0: this process) or gathered from the whole set held in memory (``--preload``), and
+  consumed in that order whatever the path; the same command gives bit-identical weights on one machine.  On CUDA,
+  ``CUBLAS_WORKSPACE_CONFIG=:4096:8`` is set before CUDA starts (cuBLAS needs it to be deterministic) and the
+  network has no op without a deterministic CUDA kernel (the background median is taken in numpy when the data is
+  made); CUDA results are repeatable on one GPU model, driver and torch build, but differ from the CPU's and between
+  GPU models (other kernels, other summation orders).  ``--rot90`` turns each image by a multiple of 90 deg about its
   centre, drawn from (seed, epoch, batch): a roll of the sensor, which leaves the boresight star's label unchanged
   (exact for a square sensor whose principal point is the image centre).
 * ``RUN/checkpoint.pt`` (model, optimiser, epoch, batch, metrics so far, and the arguments that decide the result:
@@ -30,6 +35,7 @@ import argparse
 import io
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -41,12 +47,66 @@ import torch
 from torch.nn import functional as F
 
 from starenv.agents.identify.network import load_network, manifest_hashes
-from starenv.agents.identify.network_data import ShardDataset, ShardSampler
+from starenv.agents.identify.network_data import InMemory, ShardDataset, ShardSampler, fits_in_memory
 from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
 from starenv.files import atomic_file
 
 # The arguments that change the weights a run ends with: a resume must give the checkpoint's.
 RESULT_ARGS = ("seed", "batch", "lr", "epochs", "rot90", "device", "val", "init")
+CUBLAS_DETERMINISTIC = (":4096:8", ":16:8")  # the workspace settings cuBLAS is deterministic with (CUDA docs)
+PRELOAD = ("auto", "yes", "no")  # --preload: the training and validation sets held in memory, or read from disk
+
+
+def deterministic_cuda_environment() -> None:
+    """Set ``CUBLAS_WORKSPACE_CONFIG`` to a deterministic workspace unless it holds one; effective only before
+    cuBLAS starts (the first matrix product on the GPU), so :func:`train` calls it before touching CUDA."""
+    if os.environ.get("CUBLAS_WORKSPACE_CONFIG") not in CUBLAS_DETERMINISTIC:
+        os.environ["CUBLAS_WORKSPACE_CONFIG"] = CUBLAS_DETERMINISTIC[0]
+
+
+class _Batches(torch.utils.data.Dataset):
+    """Batch ``b`` of one epoch's order as an item, so ``DataLoader`` workers read whole batches (in order), each
+    turned as :func:`rot90` draws when ``turn`` is (seed, epoch)."""
+
+    def __init__(self, source: ShardDataset | InMemory, order: list[int], batch: int,
+                 turn: tuple[int, int] | None = None):
+        self.source, self.order, self.batch, self.turn = source, order, batch, turn
+
+    def __len__(self) -> int:
+        return len(self.order) // self.batch
+
+    def __getitem__(self, b: int) -> tuple[torch.Tensor, torch.Tensor]:
+        images, labels = self.source.batch(self.order[b * self.batch:(b + 1) * self.batch])
+        if self.turn is not None:
+            images = rot90(images, *self.turn, b)
+        return images, labels
+
+
+def batches(source: ShardDataset | InMemory, order: list[int], batch: int, first: int = 0, workers: int = 0,
+            pin: bool = False, turn: tuple[int, int] | None = None):
+    """Batches ``first ..`` of ``order`` (the last partial one dropped), in order: gathered here from an
+    :class:`InMemory` source, read by ``workers`` processes (0: this one) from a :class:`ShardDataset`."""
+    items = _Batches(source, order, batch, turn)
+    if isinstance(source, InMemory):
+        return (items[b] for b in range(first, len(items)))
+    return torch.utils.data.DataLoader(items, batch_size=None, sampler=range(first, len(items)), num_workers=workers,
+                                       pin_memory=pin, prefetch_factor=4 if workers else None,
+                                       persistent_workers=False)
+
+
+def source_for(dataset: ShardDataset, device: str, preload: str, log=print) -> ShardDataset | InMemory:
+    """``dataset`` itself (read from its shards while training) or all of it in ``device``'s memory: ``preload``
+    ``yes``, ``no``, or ``auto`` (in memory when it takes at most half of what is free there)."""
+    if preload not in PRELOAD:
+        raise ValueError(f"--preload: expected one of {', '.join(PRELOAD)}, got {preload!r}")
+    if preload == "no" or (preload == "auto" and not fits_in_memory(dataset, device)):
+        return dataset
+    t0 = time.perf_counter()
+    held = InMemory(dataset, device)
+    seconds = time.perf_counter() - t0
+    log(f"{dataset.folder}: {len(held)} samples read into {device} memory in {seconds:.1f} s "
+        f"({held.images.numel() * 4 / 2**30:.2f} GiB)")
+    return held
 
 
 def _atomic_save(obj, path: Path) -> None:
@@ -80,28 +140,40 @@ def parse_config(pairs: list[str], n_classes: int) -> MainStarConfig:
     return MainStarConfig(n_classes=n_classes, **values)
 
 
-def _rot90(images: torch.Tensor, seed: int, epoch: int, batch: int) -> torch.Tensor:
+def rot90(images: torch.Tensor, seed: int, epoch: int, batch: int) -> torch.Tensor:
+    """Each image of ``images`` (B, S, S) turned by its own multiple of 90 deg, drawn from (seed, epoch, batch) on
+    the CPU; a permutation of pixels, so the same numbers on any device."""
     g = torch.Generator().manual_seed((seed * 1_000_003 + epoch) * 1_000_003 + batch)
     k = torch.randint(0, 4, (len(images),), generator=g)
-    return torch.stack([torch.rot90(img, int(q), dims=(-2, -1)) for img, q in zip(images, k, strict=True)])
+    out = images.clone()
+    for q in range(1, 4):
+        chosen = (k == q).nonzero().flatten()
+        if len(chosen):
+            chosen = chosen.to(images.device)
+            out[chosen] = torch.rot90(images[chosen], q, dims=(-2, -1))
+    return out
 
 
 @torch.no_grad()
-def evaluate(model: MainStarNet, dataset: ShardDataset, device: str, batch: int = 256) -> dict:
-    """Top-1 and top-5 accuracy and mean cross-entropy of ``model`` on every sample of ``dataset``."""
+def evaluate(model: MainStarNet, source: ShardDataset | InMemory, device: str, batch: int = 256,
+             workers: int = 0) -> dict:
+    """Top-1 and top-5 accuracy and mean cross-entropy of ``model`` on every sample of ``source``."""
     model.eval()
+    dataset = source.dataset if isinstance(source, InMemory) else source
     order = ShardSampler(dataset, 0, shuffle=False).order()
+    order += [order[i % len(order)] for i in range(-len(order) % batch)]  # whole batches; the padding is cut below
     correct1 = correct5 = 0
     loss = 0.0
-    for start in range(0, len(order), batch):
-        x, y = dataset.batch(order[start:start + batch])
+    n = len(dataset)
+    for k, (x, y) in enumerate(batches(source, order, batch, workers=workers, pin=device == "cuda")):
+        keep = max(0, min(batch, n - k * batch))
+        x, y = x[:keep], y[:keep]
         logits = model(x.to(device))
         y = y.to(device)
         loss += float(F.cross_entropy(logits, y, reduction="sum"))
         top = logits.topk(min(5, logits.shape[1]), dim=1).indices
         correct1 += int((top[:, 0] == y).sum())
         correct5 += int((top == y[:, None]).any(dim=1).sum())
-    n = len(order)
     return {"top1": correct1 / n, "top5": correct5 / n, "loss": loss / n, "samples": n}
 
 
@@ -126,12 +198,19 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
           lr: float = 1e-3, seed: int = 0, device: str = "cpu", config_pairs: list[str] | None = None,
           rot90: bool = False, max_minutes: float | None = None, resume: bool = False,
           checkpoint_every: int = 100, progress: bool = True, command: str | None = None,
-          init: str | Path | None = None, log=print) -> dict:
-    """Train and write ``out``/weights.pt and manifest.json; returns the manifest."""
+          init: str | Path | None = None, workers: int = 0, preload: str = "auto", log=print) -> dict:
+    """Train and write ``out``/weights.pt and manifest.json; returns the manifest.  ``preload``: the sets held in
+    the device's memory (``yes``, ``no``, ``auto``: when they fit, :func:`source_for`); ``workers``:
+    ``DataLoader`` processes reading the shards when they are not (0: this process).  The weights depend on
+    neither."""
     from tqdm import tqdm
 
     if device not in ("cpu", "cuda"):
         raise ValueError(f"--device: expected 'cpu' or 'cuda', got {device!r}")
+    if not isinstance(workers, int) or workers < 0:
+        raise ValueError(f"--workers: expected an integer >= 0, got {workers!r}")
+    if device == "cuda":
+        deterministic_cuda_environment()
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: no CUDA device is available to this torch build")
     for name, value, low in (("--epochs", epochs, 1), ("--batch", batch, 1), ("--checkpoint-every", checkpoint_every,
@@ -144,9 +223,18 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
     torch.use_deterministic_algorithms(True)
     dataset = ShardDataset(data)
     val_set = ShardDataset(val) if val is not None else None
+    if preload not in PRELOAD:
+        raise ValueError(f"--preload: expected one of {', '.join(PRELOAD)}, got {preload!r}")
     spec = dataset.info["spec"]
     classes = _class_hips(spec)
-    config = parse_config(config_pairs or [], len(classes))
+    input_size = spec.get("input_size")  # the size of the dataset's images (absent: a dataset not made by starenv)
+    pairs = list(config_pairs or [])
+    if input_size is not None and not any(p.startswith("input_size=") for p in pairs):
+        pairs.append(f"input_size={input_size}")
+    config = parse_config(pairs, len(classes))
+    if input_size is not None and config.input_size != input_size:
+        raise ValueError(f"--set input_size={config.input_size}: the dataset's images are {input_size} px "
+                         f"(its spec's input_size)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = MainStarNet(config).to(device)
@@ -154,6 +242,8 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     sampler = ShardSampler(dataset, seed)
     n_batches = len(dataset) // batch  # the last partial batch of an epoch is dropped (BatchNorm statistics)
+    if n_batches == 0:
+        raise ValueError(f"--batch {batch}: more than the dataset's {len(dataset)} samples")
     total = epochs * n_batches
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=total, pct_start=0.15)
     state = {"epoch": 0, "batch": 0, "history": [], "train_seconds": 0.0, "last_loss": None}
@@ -170,6 +260,10 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
                       "state": state, "spec_digest": dataset.spec_digest, "config": config.to_dict(),
                       "args": args}, ckpt)
 
+    train_source = source_for(dataset, device, preload, log)
+    val_source = None if val_set is None else source_for(val_set, device, preload, log)
+    in_memory = isinstance(train_source, InMemory)
+    loader_record = {"in_memory": in_memory, "workers": 0 if in_memory else workers}
     t0 = time.perf_counter() - state["train_seconds"]
     stopped = False
     bar = tqdm(total=total, initial=state["epoch"] * n_batches + state["batch"], unit="batch", disable=not progress,
@@ -180,11 +274,11 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
             sampler.set_epoch(epoch)
             order = sampler.order()
             model.train()
-            for b in range(state["batch"], n_batches):
-                x, y = dataset.batch(order[b * batch:(b + 1) * batch])
-                if rot90:
-                    x = _rot90(x, seed, epoch, b)
-                loss = F.cross_entropy(model(x.to(device)), y.to(device))
+            first, t_epoch = state["batch"], time.perf_counter()
+            loader = batches(train_source, order, batch, first, workers, pin=device == "cuda" and not in_memory,
+                             turn=(seed, epoch) if rot90 else None)
+            for b, (x, y) in enumerate(loader, start=first):
+                loss = F.cross_entropy(model(x.to(device, non_blocking=True)), y.to(device, non_blocking=True))
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
@@ -202,9 +296,12 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
                 break
             # from the state, not the loop: a run resumed after its epoch's last batch runs no batch here
             record = {"epoch": epoch, "last_loss": state["last_loss"],
-                      "train_seconds": round(state["train_seconds"], 1)}
+                      "train_seconds": round(state["train_seconds"], 1),
+                      # the batches this process ran of the epoch (None: resumed after its last)
+                      "samples_per_s": None if first == n_batches else round(
+                          (n_batches - first) * batch / (time.perf_counter() - t_epoch), 1)}
             if val_set is not None:
-                record["val"] = evaluate(model, val_set, device)
+                record["val"] = evaluate(model, val_source, device, workers=workers)
             state["history"].append(record)
             state["epoch"], state["batch"] = epoch + 1, 0
             checkpoint()
@@ -230,7 +327,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
         "git_commit": _git_commit(),
         "command": command,
         "seed": seed, "epochs": epochs, "batch": batch, "lr": lr, "rot90": rot90, "device": device,
-        "epochs_done": state["epoch"], "stopped_early": stopped,
+        "epochs_done": state["epoch"], "stopped_early": stopped, "loader": loader_record,
         "train_seconds": round(state["train_seconds"], 1),
         "metrics": state["history"],
     }
@@ -302,6 +399,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate of the one-cycle schedule (Adam)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--workers", type=int, default=0, help="DataLoader processes reading the shards when they are "
+                   "not held in memory (0: this one); the weights do not depend on it")
+    p.add_argument("--preload", choices=PRELOAD, default="auto", help="hold the training and validation sets in the "
+                   "device's memory (auto: when they take at most half of what is free); the weights do not depend "
+                   "on it")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a MainStarConfig field")
     p.add_argument("--rot90", action="store_true", help="augment with rolls by multiples of 90 deg")
     p.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this much training")
@@ -317,7 +419,8 @@ def main(argv: list[str] | None = None) -> int:
     manifest = train(args.data, args.out, val=args.val, epochs=args.epochs, batch=args.batch, lr=args.lr,
                      seed=args.seed, device=args.device, config_pairs=args.set, rot90=args.rot90,
                      max_minutes=args.max_minutes, resume=args.resume, checkpoint_every=args.checkpoint_every,
-                     progress=not args.quiet, command=command, init=args.init)
+                     progress=not args.quiet, command=command, init=args.init, workers=args.workers,
+                     preload=args.preload)
     print(json.dumps(manifest["metrics"][-1] if manifest["metrics"] else {}, indent=None))
     print(f"weights: {Path(args.out) / 'weights.pt'}")
     return 0

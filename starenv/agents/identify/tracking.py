@@ -24,9 +24,9 @@ Steps (detections of all heads pooled as body-frame unit vectors):
    candidate agrees with a right one by chance (its chord is off by up to the gate: a chance of about tolerance /
    gate per pair), so it has few.
 4. The attitude is solved from the core (SVD solution of Wahba's problem), every detection re-paired with the star
-   within ``refine_gate_px`` (none when two or more are: an ambiguous detection is left unidentified; a star with
-   several detections keeps the closest), and solve and re-pair repeated until the pairs stop changing (at most
-   ``_REPAIRS`` times).
+   within ``refine_gate_px`` (none when two or more are, and none for a star with two detections within
+   ``CLAIM_SIGMAS`` centroid sigmas: an ambiguous detection is left unidentified), and solve and re-pair repeated
+   until the pairs stop changing (at most ``_REPAIRS`` times).
 5. Verification (:mod:`starenv.agents.identify.verify`): with ``n`` detections and ``m`` paired, ``p`` = the chance
    that a detection lands within ``refine_gate_px`` of a catalogue star under a wrong attitude (the density of the
    catalogue stars in each head's cone, the largest of the heads'), ``g = 2`` (two agreeing pairs fix an attitude,
@@ -65,11 +65,13 @@ from starenv import checks
 from starenv.agents.base import Identifier, StarMeasurements
 from starenv.agents.blocks import wahba_svd
 from starenv.agents.identify.geometry import (
+    CLAIM_SIGMAS,
     MERGE_PX,
     body_vectors,
     closest_per_star,
     resolvable,
     same_matches,
+    sole_per_star,
     with_ids,
 )
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
@@ -79,6 +81,7 @@ from starenv.sim.sky import StarCatalog
 
 _SIGMAS = 3.0  # agreement tolerance of two chords, in sigmas of their difference
 _REPAIRS = 3  # most solve-and-re-pair rounds after the core's solution
+_SCATTER_PAIRS = 8  # pairs needed to measure the centroid scatter (else ``centroid_noise_px`` is taken)
 
 
 class TrackingIdentifier:
@@ -150,20 +153,21 @@ class TrackingIdentifier:
         stars, density = self._in_view(cameras, prior, pixel)
         unit = self._unit[stars]
         radius2 = (self.refine_gate_px * pix) ** 2
+        radii = radius2, pix**2, self.centroid_noise_px**2
         p = float(np.max(chance_match(density[heads], np.sqrt(radius2))))
         # Two attempts, each verified at half of max_false: together they accept a wrong attitude with a probability
         # below max_false.
         voted = self._vote(body, pix, unit, prior)
         if voted is not None:
-            pairs = self._settle(body, unit, self._pair(body, unit, wahba_svd(*voted[0]), radius2), radius2)
+            pairs = self._settle(body, unit, self._pair(body, unit, wahba_svd(*voted[0]), radii), radii)
             if pairs is not None and self._verified(n, len(pairs[0]), p, 2, 2 * voted[1]):
                 return self._ids(n, stars, pairs)
         # 6. The prior's own pairing, verified before any solution is fitted to it, with one pair counted as given:
         # a margin for the prior's own error, so that three detections planted on predicted stars are refused.
         # The settled pairs are tested again: settling may drop pairs, and the bound stated is for what is returned.
-        pairs = self._pair(body, unit, prior, radius2)
+        pairs = self._pair(body, unit, prior, radii)
         if self._verified(n, len(pairs[0]), p, 1, 2):
-            pairs = self._settle(body, unit, pairs, radius2)
+            pairs = self._settle(body, unit, pairs, radii)
             if pairs is not None and self._verified(n, len(pairs[0]), p, 1, 2):
                 return self._ids(n, stars, pairs)
         return None
@@ -199,14 +203,14 @@ class TrackingIdentifier:
         return (body[det[core]], unit[star[core]]), max(int(agree.sum()) // 2, 1)
 
     def _settle(self, body: np.ndarray, unit: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
-                radius2: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Step 4 from a first pairing: solve and re-pair until the pairs settle; None when fewer than
-        ``min_matches`` pair."""
+                radii: tuple) -> tuple[np.ndarray, np.ndarray] | None:
+        """Step 4 from a first pairing: solve and re-pair (:meth:`_pair`'s ``radii``) until the pairs settle; None
+        when fewer than ``min_matches`` pair."""
         for _ in range(_REPAIRS):
             if len(pairs[0]) < self.min_matches:
                 return None
             attitude = wahba_svd(body[pairs[0]], unit[pairs[1]])
-            repaired = self._pair(body, unit, attitude, radius2)
+            repaired = self._pair(body, unit, attitude, radii)
             if same_matches(repaired, pairs):
                 break
             pairs = repaired
@@ -234,16 +238,26 @@ class TrackingIdentifier:
         return np.unique(np.concatenate([np.asarray(f, dtype=np.intp) for f in found])), density
 
     @staticmethod
-    def _pair(body: np.ndarray, unit: np.ndarray, attitude: np.ndarray, radius2: np.ndarray) -> tuple:
+    def _pair(body: np.ndarray, unit: np.ndarray, attitude: np.ndarray, radii: tuple) -> tuple:
         """(detections, rows of ``unit``) paired under ``attitude``: each detection with the one star within its
-        squared radius ``radius2`` (rad^2), a star paired with several keeping the closest.  A detection with two
-        stars or more within its radius stays unpaired: which one made it is a guess (a pair a few px apart whose
-        fainter star went undetected, or two stars whose noisy centroids swapped)."""
+        squared radius ``radii[0]`` (rad^2, per detection), and only when no other detection lies within
+        ``CLAIM_SIGMAS`` centroid sigmas of that star (the scatter of each star's closest detection when there are
+        ``_SCATTER_PAIRS``, else ``radii[2]``, px^2 per axis, with ``radii[1]`` the squared plate scale, rad^2/px^2);
+        of detections further apart the closest.  A detection with two stars or more within its radius stays unpaired,
+        and so do two detections by one star: which one made it is a guess (a pair a few px apart whose fainter star
+        went undetected or is merged into the brighter in the catalogue, or two stars whose noisy centroids
+        swapped)."""
+        radius2, pixel2, variance = radii
         squared = 2.0 - 2.0 * (body @ attitude @ unit.T)
         within = squared <= radius2[:, None]
         nearest = squared.argmin(axis=1)
         alone = np.flatnonzero(within.sum(axis=1) == 1)
-        return closest_per_star(alone, nearest, squared[np.arange(len(body)), nearest])
+        closest = squared[np.arange(len(body)), nearest]
+        first = closest_per_star(alone, nearest, closest)[0]  # (each star's closest detection)
+        if len(first) >= _SCATTER_PAIRS:  # the centroid variance per axis (px^2) measured on those pairs
+            variance = 0.5 * float(np.mean(closest[first] / pixel2[first]))
+        near = (squared <= (CLAIM_SIGMAS**2 * variance * pixel2)[:, None]).sum(axis=0)
+        return sole_per_star(first, nearest, near)
 
 
 def _first_of_each(group: np.ndarray, order: np.ndarray) -> np.ndarray:

@@ -34,8 +34,8 @@ from starenv.agents.base import StepInput
 from starenv.agents.blocks import frame_background, row_window, streak_candidates
 from starenv.agents.restore.algorithms import checked_image
 from starenv.sim.gyro import GyroSamples
-from starenv.sim.optics import Camera
-from starenv.sim.render import band_fractions
+from starenv.sim.optics import Camera, SpotShape
+from starenv.sim.render import band_fractions, spread_points
 
 MAX_STEP_PX = 0.5  # largest image motion (px) between two consecutive path samples when n_samples is None
 MAX_SAMPLES = 20001
@@ -264,16 +264,25 @@ def path_kernel(path, sigma_px: float, xy_mid=None) -> tuple[np.ndarray, np.ndar
     return kernels[0], origins[0]
 
 
-def path_kernels(paths, sigma_px: float, xy_mid=None) -> tuple[list[np.ndarray], np.ndarray]:
+def path_kernels(paths, sigma_px: float, xy_mid=None, spot: SpotShape | None = None) -> tuple[list[np.ndarray],
+                                                                                               np.ndarray]:
     """:func:`path_kernel` of each of ``n`` paths (n, m, 2) px at once (``xy_mid`` (n, 2) or None): the kernels (a
-    list, each its own odd size) and their origins (n, 2)."""
+    list, each its own odd size) and their origins (n, 2).  ``spot``: each star's spot where it is (a camera's
+    field-dependent spot, :meth:`~starenv.sim.optics.Camera.spot_shape`) drawn as the renderer draws it (its
+    centroid offset left out: the kernel is centred on the light), instead of ``sigma_px`` everywhere."""
     p = checks.finite("paths", paths)
     if p.ndim != 3 or p.shape[2] != 2 or p.shape[1] == 0:
         raise ValueError(f"paths must be an (n, m, 2) array of pixel positions with m >= 1, got shape {p.shape}")
     sigma = checks.in_range("sigma_px", sigma_px, 0.1, 20.0, unit="px")
     n, m = p.shape[:2]
     mid = p[:, m // 2] if xy_mid is None else checks.finite("xy_mid", xy_mid, shape=(n, 2))
-    band, frac = band_fractions(p - mid[:, None], sigma)  # (n, m, 2), (n, m, 2, n_band), relative to mid-exposure
+    if spot is None:
+        band, frac = band_fractions(p - mid[:, None], sigma)  # (n, m, 2), (n, m, 2, n_band), relative to mid-exposure
+    else:
+        points, spread = spread_points(p - mid[:, None], spot, with_offset=False)
+        band, frac = band_fractions(points, np.repeat(spot.sigma[:, None], points.shape[1], axis=1))
+        frac[:, :, 1, :] *= spread[:, :, None]
+        m = points.shape[1]
     n_band = frac.shape[-1]
     half = np.maximum(-band.min(axis=1), band.max(axis=1) + n_band - 1)  # (n, 2): each spans [-half, half]
     w, h = (2 * half + 1).T

@@ -34,11 +34,13 @@ Deconvolve = Callable[[np.ndarray, np.ndarray, float, np.ndarray], np.ndarray]
 
 def restore_streaks(found: FrameStreaks, step: StepInput, head: int, deconvolve: Deconvolve, *,
                     kernel_sigma_px: float, margin_px: int = 3, max_patch_px: int = 256,
-                    one_batch: bool = False) -> tuple[np.ndarray, dict]:
+                    one_batch: bool = False, spot: bool = False) -> tuple[np.ndarray, dict]:
     """The frame of ``found`` with each candidate streak's box restored (module docstring), float64 DN, and a dict
     ``candidates``, ``skipped`` (boxes over ``max_patch_px``, left as observed), ``batches``, ``patch_px`` (largest
     patch side).  ``one_batch``: every patch padded to the largest size and deconvolved in one call (for
-    ``deconvolve`` rules that look at all the stars at once); otherwise one call per patch size."""
+    ``deconvolve`` rules that look at all the stars at once); otherwise one call per patch size.  ``spot``: where the
+    camera's spot varies across the field, draw each kernel with the spot where its candidate is (and resharpen to
+    it) instead of ``kernel_sigma_px``."""
     cam = step.cameras[head]
     data, centres = found.data, found.centroids
     out = data.copy()
@@ -46,7 +48,9 @@ def restore_streaks(found: FrameStreaks, step: StepInput, head: int, deconvolve:
     if len(centres) == 0:
         return out, info
     t0, t1 = window(step)
-    kernels, _ = path_kernels(sparse_paths(cam, step.gyro, t0, t1, centres), kernel_sigma_px)
+    local = cam.spot_shape(centres) if spot and cam.spot is not None else None
+    kernels, _ = path_kernels(sparse_paths(cam, step.gyro, t0, t1, centres), kernel_sigma_px, spot=local)
+    still = None if local is None else path_kernels(np.zeros((len(centres), 1, 2)), kernel_sigma_px, spot=local)[0]
     half = np.array([[k.shape[1] // 2, k.shape[0] // 2] for k in kernels])  # (k, 2) x, y
     mid = np.rint(centres).astype(np.int64)
     lo = np.maximum(mid - half, 0)
@@ -61,14 +65,15 @@ def restore_streaks(found: FrameStreaks, step: StepInput, head: int, deconvolve:
     for key in np.unique(keys):
         group = idx[keys == key]
         _restore(out, data, found.level, group, [kernels[g] for g in group], lo, hi, size[group[0]], found.sigma,
-                 deconvolve)
+                 deconvolve, None if still is None else [still[g] for g in group])
     info.update(skipped=int((~fits).sum()), batches=int(len(np.unique(keys))), patch_px=int(size[idx].max(initial=0)))
     return out, info
 
 
-def _restore(out, data, level, idx, kernels, lo, hi, patch, sigma, deconvolve: Deconvolve) -> None:
+def _restore(out, data, level, idx, kernels, lo, hi, patch, sigma, deconvolve: Deconvolve, spots=None) -> None:
     """Restore candidates ``idx`` on patches of ``patch`` = (width, height) px in one call; paste their boxes
-    ``lo``..``hi`` (inclusive x, y) into ``out``."""
+    ``lo``..``hi`` (inclusive x, y) into ``out``.  The still spot resharpened to is the Gaussian of ``sigma``, or
+    each candidate's own kernel of ``spots`` (odd sizes, centred)."""
     pw, ph = int(patch[0]), int(patch[1])
     height, width = data.shape
     kh = max(k.shape[0] for k in kernels)
@@ -89,12 +94,19 @@ def _restore(out, data, level, idx, kernels, lo, hi, patch, sigma, deconvolve: D
     # g - f (x) h + f (x) G = g - f (x) (h - G).
     radius = int(np.ceil(4.0 * sigma))
     g = cv2.getGaussianKernel(2 * radius + 1, sigma, cv2.CV_64F)  # the kernel cv2.GaussianBlur applies
+    if spots is not None:
+        radius = max(max(k.shape) for k in spots) // 2
     ch, cw = max(kh, 2 * radius + 1), max(kw, 2 * radius + 1)  # odd: the kernels' and the spot's centres align
     change = np.zeros((len(idx), ch, cw), dtype=np.float32)
     r, c = (ch - kh) // 2, (cw - kw) // 2
     change[:, r : r + kh, c : c + kw] = psfs / psfs.sum(axis=(1, 2), keepdims=True)
-    r, c = ch // 2 - radius, cw // 2 - radius
-    change[:, r : r + 2 * radius + 1, c : c + 2 * radius + 1] -= (g @ g.T).astype(np.float32)
+    if spots is None:
+        r, c = ch // 2 - radius, cw // 2 - radius
+        change[:, r : r + 2 * radius + 1, c : c + 2 * radius + 1] -= (g @ g.T).astype(np.float32)
+    else:
+        for i, k in enumerate(spots):
+            r, c = (ch - k.shape[0]) // 2, (cw - k.shape[1]) // 2
+            change[i, r : r + k.shape[0], c : c + k.shape[1]] -= k.astype(np.float32)
     restored = patches - convolve_batch(estimate, change, circular=True)
     for i, j in enumerate(idx):
         (x0, y0), (x1, y1) = lo[j], hi[j]

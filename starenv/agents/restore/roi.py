@@ -43,6 +43,7 @@ class RoiDeblurrer:
                                          circular=True)
 
         out, info = restore_streaks(found, step, head, deconvolve, kernel_sigma_px=found.sigma,
-                                    margin_px=self.margin_px, max_patch_px=self.max_patch_px)
+                                    margin_px=self.margin_px, max_patch_px=self.max_patch_px,
+                                    spot=self.psf_sigma_px is None)
         self.last_info = {"iterations": self.iterations, **info}
         return out

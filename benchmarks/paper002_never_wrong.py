@@ -1,0 +1,158 @@
+"""Paper 002's network identifier off its training distribution: how often it returns a wrong attitude, refuses, or
+is right, with a 95 % interval on the wrong rate.
+
+    python benchmarks/paper002_never_wrong.py [--frames N] [--seed S ...] [--weights DIR] [--out FILE.json]
+
+Frames (each a pure function of (seed, index)): head 0's boresight uniform in the weights' sky patch (the cap of
+``pointing.radius_deg`` about the patch centre of ``datasets/paper002_orion.toml``, so off any class star and near
+the patch edge partly outside it), roll uniform, two-axis rate uniform in 10-12 deg/s in a uniform direction plus a
+roll rate of 0 or +-6 deg/s, one of clean / false-star / missing-star (1-2 stars changed), ``MAGNITUDE_SIGMA`` mag of
+magnitude noise on every star, paper_002's sensor noise on the 128 x 128 sensor of the weights.  One detection
+(CentroidDetector, the 30 brightest), then the identifier.
+
+Per frame: **wrong** when an attitude is returned that is more than ``WRONG_DEG`` off the true mid-exposure attitude
+(a wrong main star or a flipped roll is degrees off), **right** when one is returned within it, **refused** when none
+is.  ``mislabelled`` counts right frames with a label whose star's true trail centroid is more than 2 px from the
+detection.  The 95 % interval on the wrong rate is Clopper-Pearson.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import beta
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from starenv.agents.detect.centroid import CentroidDetector  # noqa: E402
+from starenv.datasets import load_spec  # noqa: E402
+from starenv.datasets.samples import draw, render  # noqa: E402
+from starenv.sim.conventions import pointing, radec_to_unit, unit_to_radec  # noqa: E402
+from starenv.sim.sky import load_catalog  # noqa: E402
+
+SPEC = ROOT / "datasets" / "paper002_orion.toml"
+MAX_STARS = 30  # detections handed to the identifier (the brightest)
+RATE_DPS = (10.0, 12.0)  # two-axis resultant, uniform
+ROLL_DPS = (0.0, 6.0, -6.0)
+MAGNITUDE_SIGMA = 0.3  # mag, on every star
+WRONG_DEG = 0.5  # an attitude further than this from the truth is wrong (about 5 px of this sensor)
+
+
+def off_spec(seed: int):
+    """The weights' dataset spec with every star variant and magnitude noise, drawing from ``seed``."""
+    base = load_spec(SPEC).to_dict()
+    base.update(name="paper002_never_wrong", seed=seed, samples=1)
+    base["stars"] = {**base["stars"], "variants": ["clean", "false", "missing"], "magnitude_sigma": MAGNITUDE_SIGMA}
+    return load_spec(base)
+
+
+def cap_direction(rng: np.random.Generator, centre: np.ndarray, radius_rad: float) -> np.ndarray:
+    """A unit vector uniform on the sphere's cap of ``radius_rad`` about the unit vector ``centre``."""
+    cos_off = 1.0 - rng.uniform() * (1.0 - math.cos(radius_rad))
+    sin_off = math.sqrt(max(0.0, 1.0 - cos_off**2))
+    a = rng.uniform(0.0, 2.0 * math.pi)
+    e1 = np.cross(centre, [0.0, 0.0, 1.0] if abs(centre[2]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(centre, e1)
+    return cos_off * centre + sin_off * (math.cos(a) * e1 + math.sin(a) * e2)
+
+
+def frame(spec, index: int):
+    """Frame ``index``: drawn parameters with the pointing and rate replaced (see the module docstring), and the
+    rendered :class:`Frame`."""
+    params = draw(spec, index)
+    rng = np.random.default_rng([spec.seed, index, 29])
+    p = spec.pointing
+    centre = radec_to_unit(math.radians(p.center_ra_deg), math.radians(p.center_dec_deg))
+    ra, dec = unit_to_radec(cap_direction(rng, centre, math.radians(p.radius_deg)))
+    mounting = spec.load_scenario().heads[0].camera.mounting
+    params["main"] = -1
+    params["attitude"] = mounting.inv() * pointing(float(ra), float(dec), rng.uniform(0.0, 2.0 * math.pi))
+    w, a = rng.uniform(*RATE_DPS), rng.uniform(0.0, 2.0 * math.pi)
+    params["rate_cam_dps"] = np.array([w * math.cos(a), w * math.sin(a), ROLL_DPS[rng.integers(len(ROLL_DPS))]])
+    return params, render(spec, params)[1]
+
+
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided interval on a binomial rate from ``k`` of ``n``."""
+    tail = (1.0 - level) / 2.0
+    low = 0.0 if k == 0 else float(beta.ppf(tail, k, n - k + 1))
+    high = 1.0 if k == n else float(beta.ppf(1.0 - tail, k + 1, n - k))
+    return low, high
+
+
+def run(frames: int, seeds: list[int], agent=None, log=print) -> dict:
+    """Tally wrong / refused / right over ``frames`` frames of each seed; ``agent`` a NetworkIdentifier (default: the
+    shipped weights, default settings)."""
+    if agent is None:
+        from starenv.agents.identify.network import NetworkIdentifier
+
+        agent = NetworkIdentifier()
+    spec0 = off_spec(seeds[0])
+    sc = spec0.load_scenario()
+    cam = sc.heads[0].calibrated
+    catalog = load_catalog(sc.mag_limit, sc.epoch)
+    agent.reset([cam], catalog)
+    detector = CentroidDetector(psf_sigma_px=sc.heads[0].psf_sigma_px, max_stars=MAX_STARS)
+    tally = {"wrong": 0, "refused": 0, "right": 0, "mislabelled": 0}
+    wrong_frames = []
+    for seed in seeds:
+        spec = off_spec(seed)
+        for index in range(frames):
+            params, fr = frame(spec, index)
+            head = fr.heads[0]
+            out = agent.identify([detector.detect(head.image, cam)], [cam], None, [head.image])
+            if not agent.last.get("verified"):
+                tally["refused"] += 1
+                continue
+            error_deg = math.degrees((agent.last["attitude"] * params["attitude"].inv()).magnitude())
+            if error_deg > WRONG_DEG:
+                tally["wrong"] += 1
+                wrong_frames.append({"seed": seed, "index": index, "error_deg": round(error_deg, 3),
+                                     "p_false": agent.last.get("p_false"), "matched": agent.last.get("matched")})
+                log(json.dumps(wrong_frames[-1]))
+                continue
+            tally["right"] += 1
+            truth = dict(zip(head.truth.catalog_id.tolist(), head.truth.xy_centroid, strict=True))
+            ids = out[0].catalog_id
+            tally["mislabelled"] += int(any(hip >= 0 and (hip not in truth or np.linalg.norm(truth[hip] - xy) > 2.0)
+                                            for xy, hip in zip(out[0].xy, ids, strict=True)))
+    n = frames * len(seeds)
+    low, high = clopper_pearson(tally["wrong"], n)
+    return {"frames": n, "seeds": seeds, **tally, "wrong_rate_95": [low, high], "right_rate": tally["right"] / n,
+            "wrong_frames": wrong_frames, "max_false": agent.max_false}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--frames", type=int, default=1000, help="frames per seed")
+    p.add_argument("--seed", type=int, nargs="+", default=[29], help="one or more seeds of the frames")
+    p.add_argument("--weights", default=None, help="network run folder (default: the shipped weights)")
+    p.add_argument("--max-false", type=float, default=None, help="the identifier's max_false (default: its own)")
+    p.add_argument("--out", default=None, help="write the results as JSON here")
+    args = p.parse_args()
+    from starenv.agents.identify.network import DEFAULT_WEIGHTS, NetworkIdentifier
+
+    kwargs = {} if args.max_false is None else {"max_false": args.max_false}
+    agent = NetworkIdentifier(args.weights or DEFAULT_WEIGHTS, **kwargs)
+    t0 = time.perf_counter()
+    res = run(args.frames, args.seed, agent)
+    res["wall_s"] = round(time.perf_counter() - t0, 1)
+    low, high = res["wrong_rate_95"]
+    print(f"frames {res['frames']}  wrong {res['wrong']}  refused {res['refused']}  right {res['right']} "
+          f"(mislabelled {res['mislabelled']})  wrong rate 95 % [{low:.2e}, {high:.2e}]  "
+          f"right rate {res['right_rate']:.3f}  {res['wall_s']} s")
+    if args.out:
+        Path(args.out).write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,137 @@
+"""The false-match bound of the shared verification (:mod:`starenv.agents.identify.verify`): its chance of a pair
+against Monte Carlo of random star fields, the two-pair hypothesis count against brute force, the bound as a bound
+(wrong attitudes on random fields reach it no more often than it says), and wrong hypotheses of a rendered paper 002
+frame (a flipped roll, a wrong main star) refused."""
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from starenv.agents.blocks import wahba_svd
+from starenv.agents.identify.verify import false_match_probability, pair_hypotheses, verify, verify_any_search
+from starenv.sim.conventions import pointing
+from starenv.sim.optics import Camera
+from starenv.sim.sky import StarCatalog
+
+CAM = Camera.from_fov(12.0, 128, 128, 96e-6)  # paper 002's field on the 128 px sensor of the shipped weights
+PIXEL = 1.0 / CAM.fx  # rad/px
+
+
+def _random_sky(rng, stars_per_field: float) -> StarCatalog:
+    """A Poisson field of stars, uniform on the sphere's cap of 15 deg about +Z (beyond the field's corners), with
+    ``stars_per_field`` stars on average in the 128 x 128 px frame."""
+    cap = math.radians(15.0)
+    frame_sr = CAM.width * CAM.height * PIXEL**2
+    count = rng.poisson(stars_per_field / frame_sr * 2.0 * math.pi * (1.0 - math.cos(cap)))
+    z = 1.0 - rng.uniform(size=count) * (1.0 - math.cos(cap))
+    a = rng.uniform(0.0, 2.0 * math.pi, count)
+    s = np.sqrt(1.0 - z**2)
+    unit = np.column_stack([s * np.cos(a), s * np.sin(a), z])
+    return StarCatalog(hip=np.arange(1, count + 1), magnitude=np.full(count, 5.0), unit=unit, epoch=2026.0)
+
+
+def _random_detections(rng, n: int, margin_px: float) -> np.ndarray:
+    """Body vectors of ``n`` detections uniform on the frame, ``margin_px`` from its edges (a disc of that radius
+    about each lies on the frame)."""
+    xy = rng.uniform(margin_px - 0.5, CAM.width - 0.5 - margin_px, (n, 2))
+    return CAM.unproject(xy)
+
+
+def test_chance_pairs_of_a_wrong_attitude_follow_the_binomial_of_the_field_density():
+    # A wrong attitude looks at a patch of sky unrelated to the detections: the number of detections it pairs within
+    # r is Binomial(n, p), p the field's stars times pi r^2 over the frame's area (verify's p, per field).  The
+    # closed form, averaged over the fields drawn, against the fraction of fields with k or more pairs.
+    rng = np.random.default_rng(29)
+    attitude = pointing(0.0, math.pi / 2.0, 0.0)  # boresight +Z
+    n, radius, trials = 30, 2.0, 4000
+    heads = np.zeros(n, dtype=np.int64)
+    hits, expected = np.zeros((trials,), dtype=np.int64), {k: 0.0 for k in (1, 2, 3, 4)}
+    for t in range(trials):
+        sky = _random_sky(rng, 40.0)
+        v = verify(attitude, _random_detections(rng, n, radius), heads, [CAM], sky, radius, refine=0)
+        assert v.p_match == pytest.approx(len(v.field) * math.pi * radius**2 / (CAM.width * CAM.height))
+        hits[t] = v.matched
+        for k in expected:
+            expected[k] += false_match_probability(n, k, v.p_match) / trials
+    for k, tail in expected.items():
+        assert abs(np.mean(hits >= k) - tail) <= 4.0 * math.sqrt(tail * (1.0 - tail) / trials) + 0.01 * tail
+
+
+def test_pair_hypotheses_count_the_agreeing_pairs_one_by_one():
+    rng = np.random.default_rng(7)
+    body = _random_detections(rng, 9, 0.0)
+    reference = Rotation.from_rotvec([0.01, -0.02, 0.3]).apply(_random_detections(rng, 12, 0.0))
+    tolerance = 3.0 * PIXEL
+    brute = sum(abs(_angle(body[i], body[j]) - _angle(reference[a], reference[b])) <= tolerance
+                for i, j in itertools.combinations(range(len(body)), 2)
+                for a, b in itertools.permutations(range(len(reference)), 2))
+    assert brute > 0
+    assert pair_hypotheses(body, reference, tolerance) == brute
+    assert pair_hypotheses(body[:1], reference, tolerance) == 0
+
+
+ALPHAS = (0.01, 0.05, 0.2)
+
+
+def test_verification_of_wrong_attitudes_reaches_the_bound_no_more_often_than_it_says():
+    # Random detections against random fields: every attitude is wrong.  A valid bound is a p-value: it falls to
+    # alpha or below in at most a fraction alpha of the fields (plus Monte Carlo error), refinement included.
+    rng = np.random.default_rng(2029)
+    n, trials = 12, 400
+    heads = np.zeros(n, dtype=np.int64)
+    bounded = []
+    for _ in range(trials):
+        sky = _random_sky(rng, 150.0)  # dense: refinement finds chance pairs to grow from
+        attitude = pointing(0.0, math.pi / 2.0, rng.uniform(0.0, 2.0 * math.pi))
+        v = verify_any_search(attitude, _random_detections(rng, n, 0.0), heads, [CAM], sky, 2.0, 1.0)
+        bounded.append(v.p_false)
+    for alpha in ALPHAS:
+        assert np.mean(np.array(bounded) <= alpha) <= alpha + 3.0 * math.sqrt(alpha * (1.0 - alpha) / trials)
+
+
+def test_the_two_pair_bound_holds_against_the_best_of_every_two_pair_hypothesis():
+    # "Whatever the search": every attitude fixed by two (detection, star) pairs whose separations agree within 2 r
+    # is tried on random fields, and the one pairing most detections (within r of a star, one star each) kept.  The
+    # bound H_2 P(X >= m - 2), X ~ Binomial(n - 2, p), of that best one falls to alpha in at most a fraction alpha of
+    # the fields; scored as one hypothesis (H = 1) it does so far more often: the count is what makes it a bound.
+    rng = np.random.default_rng(292)
+    n, radius, trials = 10, 1.0, 150
+    area = CAM.width * CAM.height
+    bounded, single = [], []
+    for _ in range(trials):
+        sky = _random_sky(rng, 40.0)
+        xy, front = CAM.project(sky.unit)
+        field = sky.unit[front & CAM.in_frame(xy)]
+        det_xy = rng.uniform(-0.5, CAM.width - 0.5, (n, 2))
+        body = CAM.unproject(det_xy)
+        p = len(field) * math.pi * radius**2 / area
+        i, j = np.triu_indices(n, 1)
+        a, b = (x.ravel() for x in np.meshgrid(np.arange(len(field)), np.arange(len(field)), indexing="ij"))
+        a, b = a[a != b], b[a != b]
+        gap = np.abs(_angles(body[i], body[j])[:, None] - _angles(field[a], field[b])[None, :])
+        pair, star_pair = np.nonzero(gap <= 2.0 * radius * PIXEL)
+        turns = wahba_svd(np.stack([body[i[pair]], body[j[pair]]], axis=1),
+                          np.stack([field[a[star_pair]], field[b[star_pair]]], axis=1))  # (k, 3, 3)
+        star_xy, ahead = CAM.project((field @ turns.transpose(0, 2, 1)).reshape(-1, 3))
+        star_xy = np.where(ahead[:, None], star_xy, np.inf).reshape(len(turns), len(field), 2)
+        # Detections with a star within r: at least the one-star-each pairs, so the best is not undercounted.
+        near = np.linalg.norm(det_xy[None, :, None] - star_xy[:, None], axis=3) <= radius
+        best = int(near.any(axis=2).sum(axis=1).max(initial=0))
+        hypotheses = pair_hypotheses(body, field, 2.0 * radius * PIXEL)
+        bounded.append(false_match_probability(n, best, p, 2, max(hypotheses, 1)))
+        single.append(false_match_probability(n, best, p, 2))
+    bounded, single = np.array(bounded), np.array(single)
+    for alpha in ALPHAS:
+        assert np.mean(bounded <= alpha) <= alpha + 3.0 * math.sqrt(alpha * (1.0 - alpha) / trials)
+    assert np.mean(single <= ALPHAS[0]) > 20 * ALPHAS[0]
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return 2.0 * math.asin(min(1.0, float(np.linalg.norm(a - b)) / 2.0))
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return 2.0 * np.arcsin(np.minimum(1.0, np.linalg.norm(a - b, axis=1) / 2.0))

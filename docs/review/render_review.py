@@ -6,6 +6,7 @@ Run from the repository root::
     python docs/review/render_review.py                 # records paper_004 (12 steps, seed 0), writes
                                                         # docs/review/review_paper_004.png
     python docs/review/render_review.py --drops         # also stress_drops -> docs/review/review_stress_drops.png
+    python docs/review/render_review.py --bodies        # also moon_in_field -> docs/review/review_moon_in_field.png
     python docs/review/render_review.py FILE.rrd --out shot.png     # an existing review (.rrd) or MCAP (.mcap)
 
 It needs the ``rerun`` binary (the ``rerun-sdk`` package's ``rerun_cli``, or ``rerun`` on PATH) and Chromium
@@ -189,6 +190,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, help="PNG to write (default: docs/review/review_SCENARIO.png)")
     parser.add_argument("--drops", action="store_true", help="also render stress_drops (a run with dropped frames)")
+    parser.add_argument("--bodies", action="store_true", help="also render moon_in_field (the Moon on the frame, the "
+                                                               "Sun, Moon and planets in the 3-D view)")
     parser.add_argument("--wait", type=float, default=90.0, help="real seconds the page gets before the screenshot")
     parser.add_argument("--max-kb", type=float, default=700.0, help="largest PNG size, KB")
     args = parser.parse_args()
@@ -206,6 +209,10 @@ def main() -> None:
             rrd = workdir / "stress_drops.rrd"
             record("stress_drops", args.steps, args.seed, rrd)
             jobs.append((rrd, HERE / "review_stress_drops.png"))
+        if args.bodies:
+            rrd = workdir / "moon_in_field.rrd"
+            record("moon_in_field", args.steps, args.seed, rrd)
+            jobs.append((rrd, HERE / "review_moon_in_field.png"))
         for rrd, out in jobs:
             write_png(screenshot(rrd, args.wait, workdir), out, args.max_kb)
 

@@ -115,8 +115,8 @@ def loader_rates(folder: Path, device: str, preload: str, workers: int, batch: i
 
 
 def warn_only() -> None:
-    """Make every later ``torch.use_deterministic_algorithms(True)`` warn instead of raise (this run only), so a lent
-    machine's one run still trains and records which op had no deterministic kernel."""
+    """Make every later ``torch.use_deterministic_algorithms(True)`` warn instead of raise (this run only), so a one-off
+    GPU run still trains and records which op had no deterministic kernel."""
     import torch
 
     strict = torch.use_deterministic_algorithms

@@ -45,7 +45,7 @@ import starenv  # noqa: F401  (registers the ids)
 
 ENV_ID = "StarEnv/Paper000-v0"
 FRAME_SCENARIO = "paper_002"  # the 1024 x 1024 step: paper 002's optics (12 deg field)
-FRAME_MAG_LIMIT = 7.0  # stars to Hp 7 put ~40 on a 12 deg frame at a random pointing
+FRAME_MAG_LIMIT = 7.0  # a star tracker's depth on a 12 deg frame (the star count per pointing is printed)
 FRAME_EXPOSURE_S = 0.05
 FRAME_TRAIL_PX = 30.0  # trail length on the boresight
 

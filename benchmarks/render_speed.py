@@ -1,4 +1,4 @@
-"""Render speed against the RNG floor: 1024 x 1024 frames, stars to magnitude 7 (~40 on a frame) smeared ~30 px, full
+"""Render speed against the RNG floor: 1024 x 1024 frames, stars to magnitude 7 (the count printed) smeared ~30 px, full
 noise chain; and a long-trail frame (paper 002's scenario at 30 deg/s, stars to magnitude 6.5 smeared ~150 px, ~480
 instants per star).
 

@@ -1,9 +1,13 @@
 """Paper 002's comparison (Figs. 7-10, Tables 2-3) on the bundled ``paper_002`` sensor (1024 x 1024 px, 12 x 12 deg,
 92 ms) as the env delivers its frames: identification rate against two-axis and three-axis rate, star position noise
 and magnitude noise, for the triangle, grid and lost-in-space identifiers on the detector's centroids and for lost in
-space after the trail fit (``TrailFitDeblurrer``, which reads the frame's gyro samples) before detection.
+space after the trail fit (``TrailFitDeblurrer``, which reads the frame's gyro samples) before detection; with
+``--weights`` also for paper 002's network (``NetworkIdentifier``: the raw frame and the same detections).
 
     python benchmarks/paper002_comparison.py --seed 29 --frames 200 --jobs 2 --out paper002_comparison.json
+    python benchmarks/paper002_comparison.py --seed 29 --frames 200 --jobs 2 --identifiers network \
+        --weights paper002_sky_small --out paper002_comparison_network.json   # the network on the same frames
+    python benchmarks/paper002_comparison.py --tables paper002_comparison.json paper002_comparison_network.json
     python benchmarks/paper002_comparison.py --tables paper002_comparison.json
 
 Frames.  Frame ``i`` of a condition is frame 0 of the scenario as the env delivers it (``StarSensor``, the scenario's
@@ -65,7 +69,7 @@ SCENARIO = "paper_002"
 MAX_STARS = None
 NAV_MAG = 6.0  # navigation stars: Hp <= this (the paper's 6 Mv instrument threshold)
 LABEL_RADIUS_PX = 3.0  # a label is right when its detection lies this close to the star's true trail
-IDENTIFIERS = ("triangle", "grid", "lost_in_space", "lost_in_space_trail_fit")
+IDENTIFIERS = ("triangle", "grid", "lost_in_space", "lost_in_space_trail_fit")  # and "network" (with --weights)
 OUTCOMES = ("main", "wrong_main", "wrong_label", "solved")
 CHUNK = 25  # frames per task handed to a worker
 
@@ -147,45 +151,55 @@ def score(stars, camera, catalog, nav_unit, nav_hip, attitude: Rotation, truth) 
 _WORKER: dict = {}
 
 
-def _pipeline():
-    """This process's detector, trail fit, identifiers and catalogues (built once per worker)."""
-    if not _WORKER:
+def _pipeline(weights: str | None = None):
+    """This process's detector, trail fit, identifiers and catalogues (built once per worker); the network's with
+    ``weights``."""
+    if not _WORKER or _WORKER["weights"] != weights:
         sc = condition_spec(0).load_scenario()
         camera = sc.heads[0].calibrated
         catalog = load_catalog(sc.mag_limit, sc.epoch)
         nav = catalog.magnitude <= NAV_MAG
         agents = {"triangle": TriangleIdentifier(), "grid": GridIdentifier(), "lost_in_space": LostInSpaceIdentifier()}
+        if weights is not None:
+            from starenv.agents.identify.network import NetworkIdentifier  # torch: only when asked for
+            agents["network"] = NetworkIdentifier(weights)
         for agent in agents.values():
             agent.reset([camera], catalog)
-        _WORKER.update(camera=camera, catalog=catalog, nav_unit=catalog.unit[nav], nav_hip=catalog.hip[nav],
-                       agents=agents, trail_fit=TrailFitDeblurrer(),
+        _WORKER.update(weights=weights, camera=camera, catalog=catalog, nav_unit=catalog.unit[nav],
+                       nav_hip=catalog.hip[nav], agents=agents, trail_fit=TrailFitDeblurrer(),
                        detector=CentroidDetector(psf_sigma_px=sc.heads[0].psf_sigma_px, max_stars=MAX_STARS))
     return _WORKER
 
 
-def run_chunk(condition: tuple, seed: int, start: int, count: int) -> dict:
-    """Frames ``start .. start + count - 1`` of one condition: per identifier and outcome, one flag per frame."""
+def run_chunk(condition: tuple, seed: int, start: int, count: int, names: tuple[str, ...] = IDENTIFIERS,
+              weights: str | None = None) -> dict:
+    """Frames ``start .. start + count - 1`` of one condition: per identifier of ``names`` and outcome, one flag per
+    frame."""
     mode, rate, sigma_px, sigma_mag = condition
-    w = _pipeline()
+    w = _pipeline(weights)
     spec = condition_spec(seed, sigma_px, sigma_mag)
     cam, det = w["camera"], w["detector"]
-    flags = {n: {o: [] for o in OUTCOMES} for n in IDENTIFIERS}
-    seconds = {n: 0.0 for n in ("render", "detect", "trail_fit", *IDENTIFIERS)}
+    flags = {n: {o: [] for o in OUTCOMES} for n in names}
+    fit = "lost_in_space_trail_fit" in names
+    seconds = {n: 0.0 for n in ("render", "detect", *(("trail_fit",) if fit else ()), *names)}
     for index in range(start, start + count):
         t = time.perf_counter()
         params, frame, step = condition_frame(spec, mode, float(rate), index)
         t1 = time.perf_counter()
         found = det.detect(step.images[0], cam)
         t2 = time.perf_counter()
-        restored = det.detect(w["trail_fit"].deblur(step.images[0], 0, step), cam)
-        t3 = time.perf_counter()
+        restored = det.detect(w["trail_fit"].deblur(step.images[0], 0, step), cam) if fit else None
         seconds["render"] += t1 - t
         seconds["detect"] += t2 - t1
-        seconds["trail_fit"] += t3 - t2
-        for name in IDENTIFIERS:
+        if fit:
+            seconds["trail_fit"] += time.perf_counter() - t2
+        for name in names:
             agent = w["agents"]["lost_in_space" if name == "lost_in_space_trail_fit" else name]
             t = time.perf_counter()
-            out = agent.identify([restored if name == "lost_in_space_trail_fit" else found], [cam], None)[0]
+            if name == "network":
+                out = agent.identify([found], [cam], None, images=step.images)[0]
+            else:
+                out = agent.identify([restored if name == "lost_in_space_trail_fit" else found], [cam], None)[0]
             seconds[name] += time.perf_counter() - t
             result = score(out, cam, w["catalog"], w["nav_unit"], w["nav_hip"], params["attitude"],
                            frame.heads[0].truth)
@@ -194,16 +208,21 @@ def run_chunk(condition: tuple, seed: int, start: int, count: int) -> dict:
     return {"flags": flags, "seconds": seconds}
 
 
-def run(frames: int, seed: int, jobs: int, conditions=CONDITIONS, out: str | None = None, log=print) -> dict:
-    """Every condition on ``frames`` frames (tasks of ``CHUNK`` frames, ``jobs`` processes); the finished
-    conditions are written to ``out`` as each one completes, so a run cut short keeps them."""
-    tasks = [(tuple(c), seed, s, min(CHUNK, frames - s)) for c in conditions for s in range(0, frames, CHUNK)]
+def run(frames: int, seed: int, jobs: int, conditions=CONDITIONS, out: str | None = None, log=print,
+        names: tuple[str, ...] = IDENTIFIERS, weights: str | None = None) -> dict:
+    """Every condition on ``frames`` frames for the identifiers ``names`` (tasks of ``CHUNK`` frames, ``jobs``
+    processes); the finished conditions are written to ``out`` as each one completes, so a run cut short keeps
+    them."""
+    if "network" in names and weights is None:
+        raise ValueError("the network needs --weights")
+    tasks = [(tuple(c), seed, s, min(CHUNK, frames - s), tuple(names), weights) for c in conditions
+             for s in range(0, frames, CHUNK)]
     parts: dict[tuple, dict] = {}
     done: dict[tuple, dict] = {}
-    res = {"seed": seed, "frames_per_condition": frames, "results": []}
+    res = {"seed": seed, "frames_per_condition": frames, "weights": weights, "results": []}
     for (cond, start), part in local_executor(run_chunk, lambda a: (a[0], a[2]), jobs)(tasks):
         parts.setdefault(cond, {})[start] = part
-        if sum(len(p["flags"][IDENTIFIERS[0]]["main"]) for p in parts[cond].values()) == frames:
+        if sum(len(p["flags"][names[0]]["main"]) for p in parts[cond].values()) == frames:
             done[cond] = summary(cond, parts[cond])
             log(json.dumps({k: v for k, v in done[cond].items() if k != "flags"}))
             res["results"] = [done[c] for c in map(tuple, conditions) if c in done]
@@ -216,8 +235,8 @@ def summary(condition: tuple, chunks: dict) -> dict:
     """One condition's counts (frames in index order), per-frame flags and seconds per frame."""
     mode, rate, sigma_px, sigma_mag = condition
     ordered = [chunks[s] for s in sorted(chunks)]
-    flags = {n: {o: [b for c in ordered for b in c["flags"][n][o]] for o in OUTCOMES} for n in IDENTIFIERS}
-    frames = len(flags[IDENTIFIERS[0]]["main"])
+    flags = {n: {o: [b for c in ordered for b in c["flags"][n][o]] for o in OUTCOMES} for n in ordered[0]["flags"]}
+    frames = len(next(iter(flags.values()))["main"])
     seconds = {k: sum(c["seconds"][k] for c in ordered) / frames for k in ordered[0]["seconds"]}
     return {"mode": mode, "rate_dps": rate, "sigma_px": sigma_px, "magnitude_sigma": sigma_mag, "frames": frames,
             "counts": {n: {o: int(sum(v)) for o, v in f.items()} for n, f in flags.items()},
@@ -252,10 +271,15 @@ def tables(files: list[str]) -> str:
     """Markdown tables of result files (conditions merged): % identified (main star) with its 95 % interval and the
     wrong-identification rates per identifier, the paper's numbers beside."""
     rows = {}
-    for f in files:
+    for f in files:  # files of the same frames (seed, frame count) with other identifiers add their columns
         res = json.loads(Path(f).read_text(encoding="utf-8"))
         for r in res["results"]:
-            rows[(r["mode"], r["rate_dps"], r["sigma_px"], r["magnitude_sigma"])] = r
+            key = (r["mode"], r["rate_dps"], r["sigma_px"], r["magnitude_sigma"])
+            if key in rows and rows[key]["frames"] == r["frames"] and rows[key].get("seed") == res["seed"]:
+                rows[key]["flags"].update(r["flags"])
+                rows[key]["seconds_per_frame"].update(r["seconds_per_frame"])
+            else:
+                rows[key] = {**r, "seed": res["seed"]}
 
     def pct(k: int, n: int) -> str:
         lo, hi = binomial_interval(k, n)
@@ -266,7 +290,7 @@ def tables(files: list[str]) -> str:
         return "" if vals is None else " / ".join("-" if v is None else f"{v:g}" for v in vals)
 
     short = {"triangle": "triangle", "grid": "grid", "lost_in_space": "LIS",
-             "lost_in_space_trail_fit": "LIS + trail fit"}
+             "lost_in_space_trail_fit": "LIS + trail fit", "network": "network"}
     out = []
     sections = (("Two-axis rate (wz = 0), no noise (paper Fig. 7)", lambda k: k[0] == "two" and k[2] == 0 == k[3]),
                 ("Three-axis rate (equal components), no noise (paper Fig. 8; 0 deg/s is the two-axis row)",
@@ -277,18 +301,19 @@ def tables(files: list[str]) -> str:
         keys = sorted(k for k in rows if sel(k))
         if not keys:
             continue
-        head = ["w (deg/s)", "sigma (px)", "sigma (mag)", "frames"] + [f"{short[n]}: identified %" for n in IDENTIFIERS]
-        head += ["wrong: any label / attitude (frames): " + ", ".join(short[n] for n in IDENTIFIERS),
+        names = [n for n in (*IDENTIFIERS, "network") if all(n in rows[k]["flags"] for k in keys)]
+        head = ["w (deg/s)", "sigma (px)", "sigma (mag)", "frames"] + [f"{short[n]}: identified %" for n in names]
+        head += ["wrong: any label / attitude (frames): " + ", ".join(short[n] for n in names),
                  "paper: network / triangle / grid %"]
         out += [f"**{title}** (identified: % of frames, exact 95 % interval)", "",
                 "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for k in keys:
             r = rows[k]
             n = r["frames"]
-            c = {name: identified(r["flags"][name]) for name in IDENTIFIERS}
+            c = {name: identified(r["flags"][name]) for name in names}
             cells = [f"{k[1]:g}", f"{k[2]:g}", f"{k[3]:g}", str(n)]
-            cells += [pct(c[name]["identified"], n) for name in IDENTIFIERS]
-            cells.append(", ".join(f"{c[name]['wrong']} / {c[name]['wrong_attitude']}" for name in IDENTIFIERS))
+            cells += [pct(c[name]["identified"], n) for name in names]
+            cells.append(", ".join(f"{c[name]['wrong']} / {c[name]['wrong_attitude']}" for name in names))
             cells.append(paper(k) + (f" ({PAPER_NOTE[k]})" if k in PAPER_NOTE else ""))
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
@@ -309,6 +334,10 @@ def main() -> int:
     p.add_argument("--conditions", type=int, default=len(CONDITIONS),
                    help=f"run the first N of the {len(CONDITIONS)} conditions (in the order of CONDITIONS)")
     p.add_argument("--out", default=None, help="write the results as JSON here")
+    p.add_argument("--weights", default=None, help="paper 002's network's weights (a run folder or a shipped name)")
+    p.add_argument("--identifiers", default=",".join(IDENTIFIERS),
+                   help=f"comma-separated, of {', '.join(IDENTIFIERS)}, network (needs --weights); a run of other "
+                   "identifiers on the same seed and frames adds columns to the tables")
     p.add_argument("--tables", nargs="+", default=None, metavar="FILE.json",
                    help="print the markdown tables of earlier --out files (merged) and exit")
     args = p.parse_args()
@@ -316,7 +345,12 @@ def main() -> int:
         print(tables(args.tables))
         return 0
     t0 = time.perf_counter()
-    res = run(args.frames, args.seed, args.jobs, CONDITIONS[:args.conditions], args.out)
+    names = tuple(args.identifiers.split(","))
+    unknown = sorted(set(names) - {*IDENTIFIERS, "network"})
+    if unknown:
+        p.error(f"--identifiers: unknown {', '.join(unknown)}")
+    res = run(args.frames, args.seed, args.jobs, CONDITIONS[:args.conditions], args.out, names=names,
+              weights=args.weights)
     res["wall_s"] = round(time.perf_counter() - t0, 1)
     print("wall", res["wall_s"], "s")
     if args.out:

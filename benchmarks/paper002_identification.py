@@ -50,6 +50,7 @@ from starenv.datasets.samples import draw, render  # noqa: E402
 from starenv.sim.sky import load_catalog  # noqa: E402
 
 SPEC = ROOT / "datasets" / "paper002_orion.toml"
+ORION_WEIGHTS = "paper002_orion"  # the shipped run of SPEC's task
 PAPER_PX_PER_OURS = 8.0  # the paper's 12 um pixels vs this sensor's 96 um
 MAX_STARS = 30  # detections handed to the identifiers (the brightest)
 LIS_PATTERN_STARS = 8  # lost in space forms patterns from this many brightest (the default 12 is slow on dense frames)
@@ -80,15 +81,15 @@ AGENTS = ("network", "triangle", "grid", "lost_in_space", "tracking")
 
 
 def identifiers(names: tuple[str, ...] = AGENTS, network_weights: str | None = None) -> dict:
-    """The identifiers to compare, by name (the network from ``network_weights``, default the shipped run)."""
+    """The identifiers to compare, by name (the network from ``network_weights``, default the shipped Orion run)."""
     make = {"triangle": TriangleIdentifier, "grid": GridIdentifier, "tracking": TrackingIdentifier,
             "lost_in_space": lambda: LostInSpaceIdentifier(max_pattern_stars=LIS_PATTERN_STARS)}
     out = {}
     for name in names:
         if name == "network":
-            from starenv.agents.identify.network import DEFAULT_WEIGHTS, NetworkIdentifier
+            from starenv.agents.identify.network import NetworkIdentifier
 
-            out[name] = NetworkIdentifier(network_weights or DEFAULT_WEIGHTS)
+            out[name] = NetworkIdentifier(network_weights or ORION_WEIGHTS)
         else:
             out[name] = make[name]()
     return out
@@ -232,7 +233,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--frames", type=int, default=100, help="frames per condition")
     p.add_argument("--seed", type=int, default=0, help="first frame index")
-    p.add_argument("--weights", default=None, help="network run folder (default: the shipped weights)")
+    p.add_argument("--weights", default=None, help="network run folder (default: the shipped Orion weights)")
     p.add_argument("--agents", default=",".join(AGENTS), help=f"comma-separated subset of {', '.join(AGENTS)}")
     p.add_argument("--sweeps", default=",".join(SWEEPS), help=f"comma-separated subset of {', '.join(SWEEPS)}")
     p.add_argument("--out", default=None, help="write the results as JSON here")

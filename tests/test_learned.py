@@ -219,3 +219,17 @@ def test_a_dataset_of_another_input_size_is_refused(toy):
     (toy / "train" / "dataset.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="--set input_size=32: the dataset's images are 64 px"):
         _run(toy, "other")
+
+
+def test_a_dataset_centred_on_its_main_star_trains_a_network_that_says_so(toy):
+    """The spec's ``centre`` reaches the manifest's config (the identifier reads it to recentre its input); a
+    ``--set`` that contradicts the dataset is refused."""
+    info = json.loads((toy / "train" / "dataset.json").read_text())
+    info["spec"]["centre"] = "main_star"
+    (toy / "train" / "dataset.json").write_text(json.dumps(info))
+    manifest = train(toy / "train", toy / "c", epochs=1, batch=32, seed=3, config_pairs=TOY, progress=False,
+                     log=lambda *_: None)
+    assert manifest["config"]["centre"] == "main_star"
+    with pytest.raises(ValueError, match="--set centre=frame: the dataset's images are centred on the main_star"):
+        train(toy / "train", toy / "d", epochs=1, batch=32, seed=3, config_pairs=[*TOY, 'centre="frame"'],
+              progress=False, log=lambda *_: None)

@@ -27,7 +27,7 @@ def setup():
     sc = spec.load_scenario()
     cam = sc.heads[0].calibrated
     catalog = load_catalog(sc.mag_limit, sc.epoch)
-    agent = NetworkIdentifier()
+    agent = NetworkIdentifier("paper002_orion")
     agent.reset([cam], catalog)
     return spec, cam, agent, CentroidDetector(psf_sigma_px=sc.heads[0].psf_sigma_px, max_stars=30)
 

@@ -34,7 +34,7 @@ def setup():
     sc = spec.load_scenario()
     cam = sc.heads[0].calibrated
     catalog = load_catalog(sc.mag_limit, sc.epoch)
-    agent = NetworkIdentifier(max_false=MAX_FALSE)
+    agent = NetworkIdentifier("paper002_orion", max_false=MAX_FALSE)
     agent.reset([cam], catalog)
     return spec, cam, catalog, agent, CentroidDetector(psf_sigma_px=sc.heads[0].psf_sigma_px, max_stars=bench.MAX_STARS)
 

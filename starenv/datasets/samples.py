@@ -9,7 +9,9 @@ mid-exposure, its trail centred on the image centre; with ``pointing.offset_deg`
 instead, uniformly in the cap of that radius among the directions whose nearest navigation star it is, so the label
 is the navigation star nearest the image centre, the paper's main star).  A ``main_star`` image is the frame as the
 network reads it (:func:`starenv.datasets.preprocess.network_input`: area-resized to ``input_size``, background
-subtracted).
+subtracted; with ``centre = "main_star"`` shifted to put the main star's mid-exposure position, projected through
+head 0's camera, at its centre).  With ``readout = "binned"`` the sensor draws the frame's block means directly
+(:meth:`~starenv.sim.imager.Detector.read_out_binned`) instead of reading the whole frame out and resizing it.
 
 The scenario is parsed and validated once per process and spec (:func:`context`); a sample replaces only its motion
 (:func:`starenv.scenario.with_motion`) and reloads the scenario only when the spec randomises other keys.
@@ -187,7 +189,8 @@ def render(spec: DatasetSpec, params: dict) -> tuple[StarSensor, object]:
     base = spec.load_scenario(params["randomized"]) if params["randomized"] else context(spec).scenario
     sc = scenario_mod.with_motion(base, motion_table(base, params))
     catalog = _edited_sky(spec, sc, params, rng)
-    sensor = StarSensor(sc, catalog=catalog)
+    block = sc.heads[0].camera.width // spec.input_size if spec.readout == "binned" else 1
+    sensor = StarSensor(sc, catalog=catalog, readout_block=block)
     sensor.reset(params["sensor_seed"])
     return sensor, sensor.next_frame()
 
@@ -260,7 +263,14 @@ def sample(spec: DatasetSpec, index: int) -> dict[str, np.ndarray]:
                 "exposure_s": np.float64(sensor.scenario.exposure_s), **common}
     if spec.kind == "main_star":
         hip = navigation_stars(spec)[0]
-        return {"image": network_input(head.image, spec.input_size), "label": np.int32(params["main"]),
+        centre = None
+        if spec.centre == "main_star":
+            cam = sensor.scenario.heads[0].camera
+            star = navigation_stars(spec)[1][params["main"]]
+            xy, _ = cam.project(cam.inertial_to_camera(params["attitude"]).apply(star[None]))
+            block = cam.width / head.image.shape[1]  # 1, or the binned read-out's block
+            centre = (xy[0] + 0.5) / block - 0.5
+        return {"image": network_input(head.image, spec.input_size, centre), "label": np.int32(params["main"]),
                 "hip": np.int64(hip[params["main"]]), **common}
     truth = head.truth
     keep = truth.detectable

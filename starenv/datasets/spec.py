@@ -16,6 +16,10 @@ the top level is optional)::
     input_size = 256              # main_star: the image stored is the frame area-resized to input_size^2 px with its
                                   # background (median) subtracted, the network's input (datasets/preprocess.py);
                                   # default: the largest multiple of 16 up to 256 that divides both frame sides
+    readout = "frame"             # main_star: "frame" reads the whole frame out and resizes it; "binned" draws its
+                                  # block means directly (equal in distribution, far cheaper: Detector.read_out_binned)
+    centre = "frame"              # main_star: what sits at the input's centre: the frame's ("frame", the paper's
+                                  # resize) or the main star's block ("main_star": the input shifted, zeros shifted in)
 
     [overrides]                   # fixed scenario overrides, dotted key paths (as `starenv run --set`)
     "heads.0.width" = 128
@@ -140,6 +144,8 @@ class DatasetSpec:
     patches: PatchSpec = PatchSpec()
     source: str = "<dataset>"
     input_size: int | None = None
+    readout: str = "frame"
+    centre: str = "frame"
 
     @property
     def n_shards(self) -> int:
@@ -151,10 +157,7 @@ class DatasetSpec:
 
     def identity(self) -> dict:
         """Everything that decides the samples' bytes (not the file it came from; not the tables of other kinds)."""
-        d = asdict(self)
-        d.pop("source")
-        if self.input_size is None:
-            d.pop("input_size")
+        d = self.to_dict()
         if self.pointing.offset_deg == 0.0:
             d["pointing"].pop("offset_deg")
         for table, kind in (("pairs", "position_pairs"), ("patches", "smear_pairs")):
@@ -174,6 +177,9 @@ class DatasetSpec:
         d.pop("source")
         if self.input_size is None:
             d.pop("input_size")
+        for key in ("readout", "centre"):  # defaults left out: specs written before these keys keep their digests
+            if d[key] == "frame":
+                d.pop(key)
         return d
 
     def load_scenario(self, extra: dict[str, Any] | None = None) -> scenario_mod.Scenario:
@@ -240,6 +246,8 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
     shard_size = top.number("shard_size", 1000, 1, 10**6, integer=True)
     seed = top.number("seed", 0, 0, 2**63 - 1, integer=True)
     input_size = top.number("input_size", None, 1, 1024, integer=True) if kind == "main_star" else None
+    readout = top.string("readout", "frame", ("frame", "binned")) if kind == "main_star" else "frame"
+    centre = top.string("centre", "frame", ("frame", "main_star")) if kind == "main_star" else "frame"
     overrides = top.get("overrides", {})
     if not isinstance(overrides, dict):
         top.fail("overrides", "a table of dotted scenario keys", overrides)
@@ -302,7 +310,7 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
     pa.finish()
     top.finish()
     spec = DatasetSpec(name, kind, scenario, scenario_text, samples, shard_size, seed, dict(overrides), randomize,
-                       pointing, rates, stars, pairs, patches, source, input_size)
+                       pointing, rates, stars, pairs, patches, source, input_size, readout, centre)
     try:  # the scenario with its fixed overrides and the per-sample ones at their low ends must load
         camera = spec.load_scenario({k: lo for k, (lo, _) in randomize.items()}).heads[0].camera
     except scenario_mod.ScenarioError as exc:

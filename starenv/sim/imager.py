@@ -22,6 +22,8 @@ from starenv import checks
 from starenv.sim.render import StarSignal
 
 GAUSSIAN_SKEW_LIMIT = 0.05
+MIN_BINNED_SPREAD_DN = 1.0  # a background pixel's read-out spread (1 sigma) the binned read-out needs
+BINNED_RANGE_SIGMAS = 8.0  # and its distance from the ADC's range ends, in those sigmas
 
 
 @dataclass(frozen=True)
@@ -189,23 +191,97 @@ class Detector:
         return np.clip(dn, 0.0, np.float32(top), out=np.empty(self.shape, np.uint16), casting="unsafe")
 
     def _add_cosmic_rays(self, dn: np.ndarray, exposure_s: float, rng: np.random.Generator, inv_gain) -> None:
+        index, value = self._cosmic_ray_hits(exposure_s, rng, inv_gain)
+        np.add.at(dn.reshape(-1), index, value)
+
+    def _cosmic_ray_hits(self, exposure_s: float, rng: np.random.Generator,
+                         inv_gain) -> tuple[np.ndarray, np.ndarray]:
+        """The cosmic rays of one exposure: flat pixel indices and float32 DN, one entry per track segment (a
+        pixel may repeat; the entries are added in order)."""
         spec = self.spec
         h, w = self.shape
         mean_hits = spec.cosmic_ray_rate_per_cm2_s * self.pixel_area_cm2 * h * w * exposure_s
         n_hits = int(rng.poisson(mean_hits)) if mean_hits > 0 else 0
         if n_hits == 0:
-            return
+            return np.zeros(0, np.intp), np.zeros(0, np.float32)
         start = rng.uniform([0.0, 0.0], [w - 1.0, h - 1.0], size=(n_hits, 2))
         angle = rng.uniform(0.0, 2 * np.pi, n_hits)
         length = rng.exponential(spec.cosmic_ray_track_px, n_hits) if spec.cosmic_ray_track_px > 0 else np.zeros(n_hits)
         charge = spec.cosmic_ray_electrons * rng.lognormal(0.0, 0.5, n_hits)
+        index, value = [], []
         for (x, y), a, length_px, q in zip(start, angle, length, charge, strict=True):
             n_seg = max(1, math.ceil(length_px * 2))
             s = (np.arange(n_seg) + 0.5) / n_seg * length_px
             cols = np.clip(np.rint(x + s * math.cos(a)), 0, w - 1).astype(np.intp)
             rows = np.clip(np.rint(y + s * math.sin(a)), 0, h - 1).astype(np.intp)
-            np.add.at(dn, (rows, cols), np.float32(q / n_seg) * inv_gain)
+            index.append(rows * w + cols)
+            value.append(np.full(n_seg, np.float32(q / n_seg) * inv_gain, dtype=np.float32))
+        return np.concatenate(index), np.concatenate(value)
 
+    def read_out_binned(self, signal: StarSignal, exposure_s: float, rng: np.random.Generator, block: int,
+                        dark_factor: float = 1.0) -> np.ndarray:
+        """The frame :meth:`read_out` gives, averaged over ``block`` x ``block`` px blocks (float64 DN, (height /
+        block, width / block)), drawn without the whole frame: equal in distribution to those block means.
+
+        The pixels that hold star signal, a hot pixel or a cosmic ray are read out one by one as :meth:`read_out`
+        reads them (Poisson signal, the Gaussian background, the full well, the ADC's floor and range).  The others
+        hold background alone; their sum over a block is drawn as one normal with the exact mean and variance of the
+        sum of their read-outs: each is ``floor(x)`` with ``x`` normal (the Gaussian background path), whose mean is
+        ``E[x] - 1/2`` and variance ``var(x) + 1/12`` when ``x`` spreads over more than ``MIN_BINNED_SPREAD_DN``
+        (the fractional part is then uniform to within 1e-8), and a sum of hundreds of them is normal.  Refused
+        where that does not hold: the exact Poisson background path, blooming, a block that does not tile the frame,
+        or background pixels within ``BINNED_RANGE_SIGMAS`` of the ADC's range ends.
+        """
+        spec = self.spec
+        h, w = self.shape
+        if block < 1 or h % block or w % block:
+            raise ValueError(f"read_out_binned: {block} px blocks do not tile a {w} x {h} px frame")
+        if spec.blooming:
+            raise ValueError("read_out_binned: blooming moves charge between pixels; read the whole frame out")
+        if signal.shape != self.shape:
+            raise ValueError(f"signal is for a {signal.shape} sensor, this one is {self.shape}")
+        lam, std = self.background(exposure_s, dark_factor)
+        if std is None:
+            raise ValueError("read_out_binned: the background takes the exact Poisson path here (a small background "
+                             "against the read noise); read the whole frame out")
+        inv_gain = 1.0 / spec.gain_e_per_dn
+        top = min(float(spec.max_dn), spec.full_well_e / spec.gain_e_per_dn + spec.bias_dn)
+        mean_dn = np.asarray(lam, np.float64) * inv_gain + spec.bias_dn  # a background pixel's E[x]
+        sd_dn = np.asarray(std, np.float64) * inv_gain
+        if np.min(sd_dn) < MIN_BINNED_SPREAD_DN or np.min(mean_dn - BINNED_RANGE_SIGMAS * sd_dn) < 0 or np.max(
+                mean_dn + BINNED_RANGE_SIGMAS * sd_dn) > top:
+            raise ValueError("read_out_binned: the background read-out is too narrow or too near the ADC's range "
+                             "for the block sums' closed form; read the whole frame out")
+        electrons = signal.electrons if self.prnu is None else signal.electrons * self.prnu.ravel()[signal.index]
+        index = [signal.index.astype(np.intp)]
+        extra = [rng.poisson(electrons).astype(np.float32) * np.float32(inv_gain)]
+        if len(self.hot_index):
+            index.append(self.hot_index.astype(np.intp))
+            extra.append(rng.poisson(self.hot_rate_e_per_s * exposure_s * dark_factor).astype(np.float32)
+                         * np.float32(inv_gain))
+        cr_index, cr_value = self._cosmic_ray_hits(exposure_s, rng, np.float32(inv_gain))
+        index.append(cr_index)
+        extra.append(cr_value)
+        pixels, where = np.unique(np.concatenate(index), return_inverse=True)
+        added = np.bincount(where, np.concatenate(extra).astype(np.float64), minlength=len(pixels))
+        own_mean = mean_dn if mean_dn.ndim == 0 else mean_dn.ravel()[pixels]
+        own_sd = sd_dn if sd_dn.ndim == 0 else sd_dn.ravel()[pixels]
+        own = np.floor(np.clip(rng.standard_normal(len(pixels)) * own_sd + own_mean + added, 0.0, top))
+        hb, wb = h // block, w // block
+        cell = (pixels // w) // block * wb + (pixels % w) // block
+        n_own = np.bincount(cell, minlength=hb * wb)
+        var_dn = sd_dn**2 + 1.0 / 12.0
+        if mean_dn.ndim == 0:
+            n_rest = block * block - n_own
+            rest_mean, rest_var = n_rest * (mean_dn - 0.5), n_rest * var_dn
+        else:
+            def block_sums(x):
+                return x.reshape(hb, block, wb, block).sum(axis=(1, 3)).ravel()
+            rest_mean = block_sums(mean_dn - 0.5) - np.bincount(cell, own_mean - 0.5, minlength=hb * wb)
+            rest_var = block_sums(var_dn) - np.bincount(cell, var_dn.ravel()[pixels], minlength=hb * wb)
+        rest = rng.standard_normal(hb * wb) * np.sqrt(np.maximum(rest_var, 0.0)) + rest_mean
+        total = rest + np.bincount(cell, own, minlength=hb * wb)
+        return (total / (block * block)).reshape(hb, wb)
 
 def _spill(charge: np.ndarray, source: np.ndarray, full: float) -> float:
     """Move ``source`` (rows, cols) charge from each pixel towards row ``rows - 1`` of ``charge`` (rows, cols), every

@@ -102,10 +102,14 @@ class Frame:
 class StarSensor:
     """Steps a :class:`SensorSpec` (e.g. a scenario): call :meth:`reset` with a seed, then :meth:`next_frame`."""
 
-    def __init__(self, scenario: SensorSpec, catalog: StarCatalog | None = None):
+    def __init__(self, scenario: SensorSpec, catalog: StarCatalog | None = None, readout_block: int = 1):
         """``catalog``: the sky to render (default: the scenario's, Hp <= ``mag_limit`` at its ``epoch``); dataset
-        generators pass an edited one (stars removed, false stars added, positions or magnitudes perturbed)."""
+        generators pass an edited one (stars removed, false stars added, positions or magnitudes perturbed).
+        ``readout_block`` > 1 delivers each frame as its ``readout_block``-px block means (float64 DN, drawn by
+        :meth:`~starenv.sim.imager.Detector.read_out_binned` without the whole frame), for dataset generators whose
+        samples are binned frames."""
         self.scenario = scenario
+        self.readout_block = int(readout_block)
         sky_file = scenario.sky_catalog
         if catalog is None:
             catalog = (load_catalog(scenario.mag_limit, scenario.epoch) if sky_file is None
@@ -170,7 +174,8 @@ class StarSensor:
             truth = rendered.truth
             snr = detector.peak_snr(truth.peak_electrons, truth.xy_mid, sc.exposure_s, dark)
             truth.detectable = snr >= DETECTABLE_SNR
-            image = detector.read_out(rendered.signal, sc.exposure_s, noise, dark)
+            image = (detector.read_out(rendered.signal, sc.exposure_s, noise, dark) if self.readout_block == 1 else
+                     detector.read_out_binned(rendered.signal, sc.exposure_s, noise, self.readout_block, dark))
             dropped = drops.dropped(drop_rng)
             if dropped:
                 image = np.zeros_like(image)

@@ -2,7 +2,11 @@
 
 1. The network reads head 0's raw frame, preprocessed as in training (:func:`starenv.datasets.preprocess.network_input`:
    the whole frame area-resized to the network's input, background subtracted), and ranks the navigation stars as
-   the one nearest the image centre (the paper's "main star"); the ``top_k`` best are tried in turn.
+   the one nearest the image centre (the paper's "main star"); the ``top_k`` best are tried in turn.  A network
+   trained on inputs centred on their main star (config ``centre = "main_star"``) reads the frame once per each of
+   the ``centre_stars`` detections nearest the principal point, shifted to put that detection at its centre
+   (:func:`starenv.datasets.preprocess.recentred`); each detection's ``top_k`` candidates are tried on it alone,
+   the likeliest (detection, candidate) first.
 2. A candidate is put on each of the ``centre_stars`` detections nearest the principal point in turn, which fixes
    the attitude but for a turn about that detection's direction.  Each (detection, catalogue star) pair at the same
    angle from the main star's detection and from the main star (within ``radius_px``) votes for the turn that brings
@@ -10,9 +14,10 @@
 3. Each (main star, roll) attitude is verified against the catalogue
    (:func:`starenv.agents.identify.verify.verify_any_search`): detections paired within ``radius_px`` and the
    attitude refined until the pairs settle, then paired and refined again within ``verify_radius_px``; the bound on
-   the probability that a wrong attitude pairs that many detections, whatever search found it (``top_k`` sky regions
-   times the two-pair hypotheses of the field, each ``P(X >= m - 2)``, ``X ~ Binomial(n - 2, p)``, ``p`` from the
-   catalogue's stars in the field and ``verify_radius_px``), must be at most ``max_false`` (default 1e-5, the
+   the probability that a wrong attitude pairs that many detections, whatever search found it (the candidates
+   tried as sky regions times the two-pair hypotheses of the field, each ``P(X >= m - 2)``,
+   ``X ~ Binomial(n - 2, p)``, ``p`` from the catalogue's stars in the field and ``verify_radius_px``), must be at
+   most ``max_false`` (default 1e-5, the
    tracking identifier's), with ``min_matches`` pairs.  The first verified hypothesis labels the detections; when
    none verifies, nothing is identified (a wrong main star or a flipped roll never becomes an attitude).
 
@@ -42,12 +47,12 @@ from starenv.agents.base import StarMeasurements
 from starenv.agents.identify.geometry import body_vectors, with_ids
 from starenv.agents.identify.network_model import MAX_PARAMETERS, MainStarConfig, MainStarNet, parameter_count
 from starenv.agents.identify.verify import verify_any_search
-from starenv.datasets.preprocess import network_input
+from starenv.datasets.preprocess import network_input, recentred
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog, load_catalog
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "paper002_orion"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "paper002_sky_small"  # the whole sky on the bundled paper_002 sensor
 CLASS_MAG_LIMIT = 8.0  # the navigation stars' directions come from Hipparcos down to this Hp (classes are brighter)
 
 
@@ -173,9 +178,9 @@ def load_network(folder: str | Path = DEFAULT_WEIGHTS, device: str = "cpu") -> t
 class NetworkIdentifier:
     """Lost-in-space identification by paper 002's network plus catalogue verification (see the module docstring).
 
-    ``weights``: a run folder of ``starenv train`` or a shipped run's name (default: the shipped paper002_orion
-    weights); ``top_k``: main-star candidates tried; ``rolls``: roll hypotheses per candidate; ``radius_px``:
-    pairing radius of the search (px);
+    ``weights``: a run folder of ``starenv train`` or a shipped run's name (default: the shipped whole-sky
+    paper002_sky_small weights; paper002_orion is the 128 px Orion patch); ``top_k``: main-star candidates tried;
+    ``rolls``: roll hypotheses per candidate; ``radius_px``: pairing radius of the search (px);
     ``verify_radius_px``: pairing radius of the verification, the bound's (px); ``min_matches``: pairs needed;
     ``max_false``: largest accepted bound on the probability of a wrong attitude per frame;
     ``centre_stars``: detections nearest the principal point each candidate is put on;
@@ -217,12 +222,16 @@ class NetworkIdentifier:
         self.catalog = catalog
 
     @torch.no_grad()
-    def rank(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Navigation stars (HIP) ranked as the boresight star of a raw frame, and their softmax probabilities."""
-        x = torch.from_numpy(network_input(image, self.net.config.input_size))[None]
-        prob = torch.softmax(self.net(x.to(self.device)), dim=1)[0].cpu().numpy()
-        order = np.argsort(-prob, kind="stable")
-        return self.classes[order], prob[order]
+    def rank(self, image: np.ndarray, centres: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Navigation stars (HIP) ranked as the main star of a raw frame, and their softmax probabilities; with
+        ``centres`` ((n, 2) px, for a network trained on centred inputs), ranked as the star at each centre: arrays
+        (n, classes)."""
+        inputs = network_input(image, self.net.config.input_size)
+        batch = inputs[None] if centres is None else np.stack([recentred(inputs, image.shape, c) for c in centres])
+        prob = torch.softmax(self.net(torch.from_numpy(batch).to(self.device)), dim=1).cpu().numpy()
+        order = np.argsort(-prob, axis=1, kind="stable")
+        ranked, prob = self.classes[order], np.take_along_axis(prob, order, axis=1)
+        return (ranked[0], prob[0]) if centres is None else (ranked, prob)
 
     def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
                  images: list[np.ndarray | None] | None = None) -> list[StarMeasurements]:
@@ -234,31 +243,44 @@ class NetworkIdentifier:
         self.last = {"ranked": None, "main": None, "verified": False}
         if images is None or images[0] is None:
             return none
+        cam, det = cameras[0], stars[0].xy
+        centre = np.argsort(np.hypot(det[:, 0] - cam.cx, det[:, 1] - cam.cy), kind="stable")[: self.centre_stars]
         t0 = time.perf_counter()
-        ranked, prob = self.rank(images[0])
+        if self.net.config.centre == "main_star":  # each centre detection's own candidates, the likeliest first
+            if not len(centre):
+                return none
+            ranked, prob = self.rank(images[0], det[centre])
+            ranked, prob = ranked[:, : self.top_k].ravel(), prob[:, : self.top_k].ravel()
+            order = np.argsort(-prob, kind="stable")
+            tries = [(int(ranked[o]), centre[o // self.top_k: o // self.top_k + 1]) for o in order]
+            ranked, prob = ranked[order], prob[order]
+        else:
+            ranked, prob = self.rank(images[0])
+            ranked, prob = ranked[: self.top_k], prob[: self.top_k]
+            tries = [(int(hip), centre) for hip in ranked]
         self.last["forward_s"] = time.perf_counter() - t0
-        self.last["ranked"], self.last["prob"] = ranked[: self.top_k], prob[: self.top_k]
-        hypotheses = self._hypotheses(cameras[0], stars[0].xy, ranked[: self.top_k])
-        for hip, attitude in hypotheses:
+        self.last["ranked"], self.last["prob"] = ranked, prob
+        for hip, attitude in self._hypotheses(cam, det, tries):
             v = verify_any_search(attitude, body, heads, cameras, self.catalog, self.radius_px,
-                                  self.verify_radius_px, regions=self.top_k)
+                                  self.verify_radius_px, regions=len(tries))
             if v.matched >= self.min_matches and v.p_false <= self.max_false:
                 self.last.update(main=int(hip), verified=True, attitude=v.attitude, p_false=v.p_false,
                                  matched=v.matched)
                 return with_ids(stars, v.ids)
         return none
 
-    def _hypotheses(self, cam: Camera, det: np.ndarray, candidates: np.ndarray) -> list[tuple[int, Rotation]]:
+    def _hypotheses(self, cam: Camera, det: np.ndarray,
+                    tries: list[tuple[int, np.ndarray]]) -> list[tuple[int, Rotation]]:
         """(main star HIP, inertial -> body attitude) hypotheses of head 0's detections ``det`` (px): for each
-        candidate in turn, its ``rolls`` most voted (detection, turn) pairs (see the module docstring)."""
+        (candidate HIP, detections it is put on) in turn, its ``rolls`` most voted (detection, turn) pairs (see the
+        module docstring)."""
         if len(det) < 2:
             return []
         units = cam.unproject(det)  # camera frame
         tol = self.radius_px / max(cam.fx, cam.fy)  # rad
-        centre = np.argsort(np.hypot(det[:, 0] - cam.cx, det[:, 1] - cam.cy), kind="stable")[: self.centre_stars]
         out = []
-        for hip in candidates:
-            star = self.class_unit[int(hip)]
+        for hip, centre in tries:
+            star = self.class_unit[hip]
             rows = self.catalog.cone(star, min(np.pi, 2.0 * cam.half_diagonal))
             ref = self.catalog.unit[rows]
             ref_angle, ref_azimuth, ref_frame = _polar(star, ref)

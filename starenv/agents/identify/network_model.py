@@ -7,6 +7,8 @@ Architecture (paper, Figs. 4-6 and Eqs. 6-11), every size a field of :class:`Mai
   background) subtracted, in numpy, before the network (:func:`starenv.datasets.preprocess.network_input`, shared by
   the dataset generator and the identifier); the network compresses its input as ``asinh(x / scale_dn)``.  The
   paper's "normalised with a mean and variance of 0.1" does not fix a scale for raw DN, so this is a choice.
+  ``centre = "main_star"``: the input is shifted to put a star at its centre (the paper's training images have their
+  main star there); the identifier puts each detection near the frame's centre there in turn.
 * feature extractor: a 3x3 stem convolution, a stride-2 max-pool and six ResNet basic blocks (two 3x3 convolutions,
   BatchNorm, ReLU; a 1x1 projection shortcut where the shape changes), blocks 1, 3 and 5 with stride 2: four
   down-samplings, ``input_size / 16`` squared tokens of ``widths[-1]`` = D channels (paper: 256 -> 64 x 16 x 16).
@@ -34,6 +36,8 @@ from torch.nn import functional as F
 MAX_PARAMETERS = 2**27  # trainable parameters (512 MiB as float32; far above the paper's configuration)
 MAX_INPUT_SIZE = 1024  # px: (1024 / 16)^2 = 4096 tokens, attention maps of 4096^2 per head (the paper: 256)
 MAX_FIELD = 2**16  # any single size (classes, channels, depth, heads, dims)
+CENTRES = ("frame", "main_star")
+LATER_FIELDS = ("centre",)  # fields added after weights were first shipped: absent in a manifest means the default
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,7 @@ class MainStarConfig:
     head_dim: int = 64
     mlp_dim: int = 256
     scale_dn: float = 10.0
+    centre: str = "frame"  # what sits at the input's centre: "frame" (the whole frame resized) or "main_star"
 
     def __post_init__(self):
         def size(name: str, value) -> None:
@@ -68,6 +73,8 @@ class MainStarConfig:
         if not (isinstance(self.scale_dn, int | float) and not isinstance(self.scale_dn, bool)
                 and math.isfinite(self.scale_dn) and self.scale_dn > 0):
             raise ValueError(f"scale_dn: expected a positive number of DN, got {self.scale_dn!r}")
+        if self.centre not in CENTRES:
+            raise ValueError(f"centre: expected one of {', '.join(CENTRES)}, got {self.centre!r}")
         if parameter_count(self) > MAX_PARAMETERS:
             raise ValueError(f"config: {parameter_count(self)} parameters, more than {MAX_PARAMETERS}")
 
@@ -84,13 +91,16 @@ class MainStarConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["widths"] = list(self.widths)
+        if self.centre == "frame":  # left out, so the manifests written before the field keep their identity
+            d.pop("centre")
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> MainStarConfig:
         """A config from :meth:`to_dict`'s form; an unknown or missing field is a ValueError naming it."""
         names = [f.name for f in fields(cls)]
-        unknown, missing = sorted(set(d) - set(names)), [n for n in names if n not in d]
+        unknown = sorted(set(d) - set(names))
+        missing = [n for n in names if n not in d and n not in LATER_FIELDS]
         if unknown or missing:
             raise ValueError(f"expected the fields {', '.join(names)}; unknown {unknown}, missing {missing}")
         widths = d["widths"]

@@ -231,10 +231,16 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
     pairs = list(config_pairs or [])
     if input_size is not None and not any(p.startswith("input_size=") for p in pairs):
         pairs.append(f"input_size={input_size}")
+    centre = spec.get("centre", "frame")  # where the dataset's images are centred
+    if not any(p.startswith("centre=") for p in pairs):
+        pairs.append(f"centre={json.dumps(centre)}")
     config = parse_config(pairs, len(classes))
     if input_size is not None and config.input_size != input_size:
         raise ValueError(f"--set input_size={config.input_size}: the dataset's images are {input_size} px "
                          f"(its spec's input_size)")
+    if config.centre != centre:
+        raise ValueError(f"--set centre={config.centre}: the dataset's images are centred on the {centre} (its spec's "
+                         f"centre)")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = MainStarNet(config).to(device)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from starenv.agents.detect.centroid import CentroidDetector
-from starenv.agents.identify.network import DEFAULT_WEIGHTS, NetworkIdentifier
+from starenv.agents.identify.network import DEFAULT_WEIGHTS, WEIGHTS_DIR, NetworkIdentifier
 from starenv.agents.identify.network_model import MainStarConfig, parameter_count
 from starenv.datasets import navigation_stars
 from starenv.sim.sky import load_catalog
@@ -32,16 +32,19 @@ def setup():
     return spec, cam, agent, CentroidDetector(psf_sigma_px=sc.heads[0].psf_sigma_px, max_stars=30)
 
 
-def test_shipped_weights_are_tensors_with_their_manifest():
-    state = torch.load(DEFAULT_WEIGHTS / "weights.pt", weights_only=True)
-    manifest = json.loads((DEFAULT_WEIGHTS / "manifest.json").read_text())
+@pytest.mark.parametrize("name", ["paper002_orion", "paper002_sky_small"])
+def test_shipped_weights_are_tensors_with_their_manifest(name):
+    folder = WEIGHTS_DIR / name
+    state = torch.load(folder / "weights.pt", weights_only=True)
+    manifest = json.loads((folder / "manifest.json").read_text())
     config = MainStarConfig.from_dict(manifest["config"])
     assert all(isinstance(v, torch.Tensor) for v in state.values())
     assert sum(v.numel() for k, v in state.items() if "running" not in k and "num_batches" not in k) == \
         parameter_count(config)
     assert len(manifest["classes_hip"]) == config.n_classes
-    assert (DEFAULT_WEIGHTS / "weights.pt").stat().st_size < 50e6
-    assert manifest["dataset"]["name"] == "paper002_orion" and len(manifest["dataset"]["spec_digest"]) == 64
+    assert (folder / "weights.pt").stat().st_size < 50e6
+    assert manifest["dataset"]["name"] == name and len(manifest["dataset"]["spec_digest"]) == 64
+    assert DEFAULT_WEIGHTS == WEIGHTS_DIR / "paper002_sky_small"  # the whole sky on the bundled sensor
 
 
 def _frames(spec, rates, count):

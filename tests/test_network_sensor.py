@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from starenv.agents.detect.centroid import CentroidDetector
-from starenv.agents.identify.network import DEFAULT_WEIGHTS, NetworkIdentifier
+from starenv.agents.identify.network import WEIGHTS_DIR, NetworkIdentifier
 from starenv.datasets import load_spec, sample
 from starenv.datasets.preprocess import lower_median, network_input
 from starenv.datasets.samples import context, draw, motion_table, navigation_stars, render
@@ -82,7 +82,7 @@ def test_off_centre_boresights_are_labelled_by_the_nearest_navigation_star():
 def test_a_camera_other_than_the_training_one_is_refused():
     sc = _spec().load_scenario()
     agent = NetworkIdentifier("paper002_orion")  # a shipped run by name: 128 x 128 px, 12 deg
-    assert agent.weights == DEFAULT_WEIGHTS
+    assert agent.weights == WEIGHTS_DIR / "paper002_orion"
     with pytest.raises(ValueError, match=r"trained for a 128 x 128 px, 11.99 x 11.99 deg camera; head 0 is "
                                          r"1024 x 1024 px, 11.99 x 11.99 deg"):
         agent.reset([sc.heads[0].calibrated], load_catalog(sc.mag_limit, sc.epoch))

@@ -325,13 +325,13 @@ def test_atomic_files_are_created_exclusively_and_keep_what_they_should(tmp_path
 
 @pytest.fixture(scope="module")
 def weights(tmp_path_factory):
-    """A copy of the shipped weights folder."""
+    """A copy of the shipped Orion weights folder (216 classes)."""
     import shutil
 
-    from starenv.agents.identify.network import DEFAULT_WEIGHTS
+    from starenv.agents.identify.network import WEIGHTS_DIR
 
     folder = tmp_path_factory.mktemp("weights") / "run"
-    shutil.copytree(DEFAULT_WEIGHTS, folder)
+    shutil.copytree(WEIGHTS_DIR / "paper002_orion", folder)
     return folder
 
 

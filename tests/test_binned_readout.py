@@ -41,7 +41,7 @@ def test_block_means_are_the_whole_frames_in_distribution():
     """Each block's mean from the binned read-out and from the whole frame (1500 draws each): a saturated star's
     block, a faint star's and background blocks (some with hot pixels) pass a two-sample KS test at the 1e-3 level,
     and a background block's mean and variance are the closed form's (floor of a normal: E - 1/2, var + 1/12) within
-    5 standard errors; a sum without the floor's -1/2 would be 0.5 DN / 256 off, ten standard errors."""
+    5 standard errors."""
     whole, binned = _draws(1500)
     for row, col in [(2, 3), (6, 1), (0, 0), (7, 7), (4, 5)]:
         assert ks_2samp(whole[:, row, col], binned[:, row, col]).pvalue > 1e-3, (row, col)

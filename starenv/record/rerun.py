@@ -71,6 +71,8 @@ from starenv.record.step import ERROR, INFO, WARNING, FilterState, Stars2D, Step
 from starenv.sim.bodies import body_directions
 
 APPLICATION_ID = "starenv"
+FLUSH_BYTES = 1 << 21  # a chunk is cut once this many bytes of rows are pending (Rerun's default size)
+FLUSH_NEVER_S = 1e9  # the batcher's wall-clock tick, in s: never within a run
 PIXEL_ORIGIN = 0.5
 LEVELS = {INFO: "INFO", WARNING: "WARN", ERROR: "ERROR"}
 AXIS_COLORS = np.array([(230, 40, 40), (40, 200, 40), (60, 90, 255)])  # x, y, z (roll: about z)
@@ -322,10 +324,13 @@ def blueprint(sizes: list[tuple[int, int]], keys=(), with_filter: bool = False, 
 
 def open_stream(path: str | os.PathLike, recording_id: str, name: str):
     """A recording stream saving to ``path`` (``.rrd``) with a fixed id and no wall-clock timeline; its layout comes
-    with the first step (:class:`Review`)."""
+    with the first step (:class:`Review`).  Chunks are cut by size alone (Rerun's default 2 MiB), never by its
+    wall-clock flush tick, so the same data is cut into the same chunks however loaded the machine is."""
     import rerun as rr
 
-    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, send_properties=False)
+    batcher = rr.ChunkBatcherConfig(flush_tick=FLUSH_NEVER_S, flush_num_bytes=FLUSH_BYTES)
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, send_properties=False,
+                             batcher_config=batcher)
     rec.set_log_time_enabled(False)
     rec.save(str(path))
     rec.send_recording_name(name)

@@ -1,9 +1,12 @@
 """Detector speed and accuracy beside SEP (Source Extractor as a C library) on the same 1024 x 1024 frames.
 
 Frames: paper 002's scenario (1024^2, 12 deg field, 92 ms exposure, stars to magnitude 6.5, hot pixels and cosmic
-rays) turning at 0, 5 and 10 deg/s about [1, 1, 1].  Both detectors run on one core (OpenCV held to one thread; SEP
-is single-threaded), interleaved frame by frame; the time of each is the median over the repeats, and the ratio
-``CentroidDetector / SEP`` is taken in the same run (the machines are shared and noisy).
+rays) at 0, 5 and 10 deg/s, drawn fresh for each run: frame ``k`` of a rate comes from seed ``--seed + k`` (the
+sensor's noise and a pointing, roll and rotation axis drawn uniformly on the sphere from it), so ``--frames`` frames
+are that many independent pointings.  Both detectors run on one core (OpenCV held to one thread; SEP is
+single-threaded), interleaved frame by frame; each repeat times every detector on every frame, and the ratio
+``CentroidDetector / SEP`` is taken per repeat in the same run (the machines are shared and noisy): its median and
+range over the repeats are printed.
 
 SEP runs ``sep.Background`` (64 px boxes, 3 x 3 median filter of the grid), subtracted, then ``sep.extract`` with
 at least 2 pixels, in two set-ups: "matched", the PSF-matched Gaussian kernel (``filter_type="matched"``) with a
@@ -21,7 +24,7 @@ into one star).
 ``--profile`` prints where CentroidDetector's time goes (cProfile, internal time).
 
     python -m pip install -e ".[bench]"   # SEP, a benchmark-only dependency
-    python benchmarks/detect_speed.py [--frames N] [--repeats N] [--profile]
+    python benchmarks/detect_speed.py [--frames N] [--seed S] [--repeats N] [--profile]
 """
 
 from __future__ import annotations
@@ -45,14 +48,19 @@ EDGE_PX = 4.0  # CentroidDetector leaves out stars cut by the border (their cent
 WIDTH = 1024
 
 
-def frames(rate_dps: float, count: int) -> tuple[list, object]:
-    """``count`` consecutive frames (image, truth) of paper 002's head at ``rate_dps`` about [1, 1, 1], and the head."""
-    per_axis = rate_dps / np.sqrt(3.0)
-    sc = scenario.load("paper_002", {"motion.rate_dps": [per_axis] * 3})
-    sensor = StarSensor(sc)
+def frames(rate_dps: float, seeds: range) -> tuple[list, object]:
+    """One frame (image, truth) of paper 002's head at ``rate_dps`` per seed, each from its own pointing, roll and
+    rotation axis drawn from the seed (uniform on the sphere); and the head."""
     out = []
-    for _ in range(count):
-        head = sensor.next_frame().heads[0]
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        boresight, axis = rng.normal(size=(2, 3))
+        boresight, axis = boresight / np.linalg.norm(boresight), axis / np.linalg.norm(axis)
+        ra, dec = np.degrees(np.arctan2(boresight[1], boresight[0])) % 360.0, np.degrees(np.arcsin(boresight[2]))
+        sc = scenario.load("paper_002", {"seed": int(seed), "motion.rate_dps": (rate_dps * axis).tolist(),
+                                         "motion.initial_ra_deg": float(ra), "motion.initial_dec_deg": float(dec),
+                                         "motion.initial_roll_deg": float(rng.uniform(0.0, 360.0))})
+        head = StarSensor(sc).next_frame().heads[0]
         out.append((head.image, head.truth))
     return out, sc.heads[0]
 
@@ -117,22 +125,31 @@ def scores(xys: dict[str, list[np.ndarray]], truths: list) -> tuple[dict[str, tu
                           for key, (on_a, on_b) in pairs.items()}
 
 
-def median_times(fns: list, images: list[np.ndarray], repeats: int) -> list[float]:
-    """Median time (s) per image of each fn, the fns interleaved image by image."""
-    times = [[] for _ in fns]
-    for _ in range(repeats):
+def repeat_times(fns: list, images: list[np.ndarray], repeats: int) -> np.ndarray:
+    """Time (s) per image of each fn in each repeat (repeats, fns): the fns interleaved image by image, each
+    repeat's time the median over the images."""
+    times = np.empty((repeats, len(fns)))
+    for r in range(repeats):
+        per_image = [[] for _ in fns]
         for image in images:
             for k, fn in enumerate(fns):
                 t0 = time.perf_counter()
                 fn(image)
-                times[k].append(time.perf_counter() - t0)
-    return [float(np.median(t)) for t in times]
+                per_image[k].append(time.perf_counter() - t0)
+        times[r] = [np.median(t) for t in per_image]
+    return times
+
+
+def spread(ratios: np.ndarray) -> str:
+    """``median [min-max]`` of per-repeat ratios."""
+    return f"{np.median(ratios):.2f} [{ratios.min():.2f}-{ratios.max():.2f}]"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=4, help="frames per rate")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--frames", type=int, default=16, help="frames per rate, each its own pointing")
+    parser.add_argument("--seed", type=int, default=4100, help="frame k of a rate is drawn from seed + k")
+    parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--profile", action="store_true")
     args = parser.parse_args()
     cv2.setNumThreads(1)
@@ -140,7 +157,7 @@ def main() -> None:
     print(f"{'rate':>8} {'detector':>17} {'ms/frame':>9} {'recall':>7} {'(all)':>6} {'precision':>9} "
           f"{'centroid px':>11} {'(common)':>8}")
     for rate in RATES_DPS:
-        data, head = frames(rate, args.frames)
+        data, head = frames(rate, range(args.seed, args.seed + args.frames))
         images, truths = [d[0] for d in data], [d[1] for d in data]
         ours, linked = CentroidDetector(), CentroidDetector(link_streaks=True)
 
@@ -152,14 +169,16 @@ def main() -> None:
 
         fns = {"CentroidDetector": our_detect, "SEP matched": sep_detector(head.psf_sigma_px, True),
                "SEP default": sep_detector(head.psf_sigma_px, False), "linked streaks": linked_detect}
-        times = median_times(list(fns.values()), images, args.repeats)
+        per_repeat = repeat_times(list(fns.values()), images, args.repeats)
+        times = np.median(per_repeat, axis=0)
         found, pairwise = scores({name: [fn(im) for im in images] for name, fn in fns.items()}, truths)
         for name, t in zip(fns, times, strict=True):
             recall, recall_all, precision, error, common = found[name]
             print(f"{rate:6.1f}/s {name:>17} {t * 1e3:9.2f} {recall:7.3f} {recall_all:6.3f} {precision:9.3f} "
                   f"{error:11.3f} {common:8.3f}")
         for k, name in ((0, "ratio to SEP"), (3, "linked / SEP")):
-            print(f"{'':8} {name:>17} {times[k] / times[1]:9.2f} (matched) {times[k] / times[2]:.2f} (default)")
+            print(f"{'':8} {name:>17} {spread(per_repeat[:, k] / per_repeat[:, 1])} (matched) "
+                  f"{spread(per_repeat[:, k] / per_repeat[:, 2])} (default)")
         for sep in ("SEP matched", "SEP default"):
             n, ours_px, sep_px = pairwise[("CentroidDetector", sep)]
             print(f"{'':8} {'on stars both find':>17}: CentroidDetector {ours_px:.3f} px, {sep} {sep_px:.3f} px "

@@ -281,6 +281,26 @@ def test_star_cut_by_the_edge_is_left_out_unless_asked_for():
     assert nearest_px(kept, edge)[0] < 1.0
 
 
+def test_a_bright_star_whose_wings_reach_the_border_is_kept_unbiased_and_a_trail_running_off_it_is_not():
+    """The border rule bounds what a blob loses beyond the border: a bright spot 3.3 px (4.5 PSF sigmas) inside,
+    whose wings stand far above the noise within the growth margin (2 px) of the border, loses next to nothing
+    and is kept, centroided as well as a free spot (the 0.05 px of the bright-star test); a faint spot 1.2 px
+    inside, and a trail that runs off the top of the frame, are left out (kept with ``keep_edge``)."""
+    frame = render([[3.3, 250.5]], 2.5)
+    assert int(expected_dn(frame.signal)[250, 2]) - QUIET.bias_dn > 100
+    for seed in range(5):
+        stars = CentroidDetector(psf_sigma_px=SIGMA).detect(read_out(frame.signal, seed), CAM)
+        assert len(stars) == 1 and nearest_px(stars, frame.truth.xy_centroid)[0] < 0.05
+    faint = render([[1.2, 250.5]], 6.0)
+    assert len(CentroidDetector(psf_sigma_px=SIGMA).detect(read_out(faint.signal, 0), CAM)) == 0
+    trail = render([[256.3, 8.0]], 0.5, (-20.0 / CAM.fx / EXPOSURE, 0.0, 0.0))
+    assert trail.truth.xy_end[0, 1] < -10.0
+    for seed in range(3):
+        image = read_out(trail.signal, seed)
+        assert len(CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)) == 0
+        assert len(CentroidDetector(psf_sigma_px=SIGMA, keep_edge=True).detect(image, CAM)) == 1
+
+
 def test_stars_come_brightest_first_and_max_stars_keeps_the_brightest():
     xy = [[100.2, 100.7], [300.5, 200.1], [400.8, 420.3]]
     frame = render(xy, [5.0, 3.0, 4.0])

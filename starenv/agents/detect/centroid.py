@@ -32,9 +32,10 @@ the iterations of a Gaussian fit made for all stars at once.
    direction of motion that the nearest long streak gives, with short breaks between them, are joined into one
    star (see :func:`_link_streaks`).  Off by default: it matters only where trails are many PSF widths long.
 
-Flux is the sum of background-subtracted DN over the grown blob.  Stars whose grown blob touches the image border are
-cut by it (centroid pulled inwards, flux short) and are left out unless ``keep_edge=True``.  Stars closer than about
-5 PSF sigmas merge into one detection.
+Flux is the sum of background-subtracted DN over the grown blob.  Stars whose blob reaches the image border are cut
+by it (centroid pulled inwards, flux short) and are left out unless ``keep_edge=True``; a bright star whose faint
+wings reach it is kept when the light on the border's outermost pixels bounds the pull to ``EDGE_BIAS_PX``.  Stars
+closer than about 5 PSF sigmas merge into one detection.
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ LINK_ACROSS_SIGMAS = 1.5  # streak linking: the most a piece's centre may lie of
 LINK_GAP_SIGMAS = 6.0  # streak linking: the longest break between two pieces of one trail, in PSF sigmas
 LINK_ANGLE_DEG = 15.0  # streak linking: the most two streak pieces' axes may differ
 LINK_MIN_HALF_SIGMAS = 3.0  # streak linking: the least half-length (PSF sigmas) of a streak giving the motion's way
+EDGE_BIAS_PX = 0.01  # the most the light a blob loses beyond the image border may pull its centroid
 FIT_ITERATIONS = 30  # at most; the fit stops once no centre moves by FIT_TOLERANCE_PX
 FIT_TOLERANCE_PX = 1e-4
 MAX_LABELS = 2**24  # labels are carried in float32 images, exact up to here
@@ -289,11 +291,6 @@ class CentroidDetector:
         blobs = _Blobs(grown, core, resid, smooth, n)
 
         good = np.ones(n, bool)
-        if not self.keep_edge:
-            c = blobs.in_core
-            x, y = blobs.x[c], blobs.y[c]
-            touching = (x <= m) | (y <= m) | (x >= width - 1 - m) | (y >= height - 1 - m)
-            good &= np.bincount(blobs.label[c], touching, n) == 0
         if self.reject_sharp:
             good &= self._not_sharp(blobs, resid, noise, psf) & ~self._track_remnant(grown, n, removed, blobs.flux)
 
@@ -303,11 +300,14 @@ class CentroidDetector:
         if self.method == "iwcog":
             weighted = ~streak
             xy[weighted] = blobs.centroid(blobs.positive * np.maximum(blobs.smooth, 0.0))[weighted]
-        elif self.method == "gaussian":
-            saturation = self._saturation(image)
-            saturated = np.zeros(n, bool)
-            if saturation is not None:
-                saturated = np.bincount(blobs.label, image.ravel()[blobs.pixel] >= saturation, n) > 0
+        saturated = np.zeros(n, bool)
+        if (saturation := self._saturation(image)) is not None and (self.method == "gaussian" or not self.keep_edge):
+            saturated = np.bincount(blobs.label, image.ravel()[blobs.pixel] >= saturation, n) > 0
+        if not self.keep_edge:
+            spot = local_sigma(camera, xy, self.psf_sigma_px)  # the pixel-integrated spot's sigma, as _Psf's
+            sigma = psf.sigma_eff if spot is None else np.sqrt(spot**2 + 1.0 / 12.0)
+            good &= ~_cut_by_border(blobs, xy, noise, m, ~streak & ~saturated, sigma)
+        if self.method == "gaussian":
             fit = np.flatnonzero(good & ~streak & ~saturated)
             xy[fit] = self._fit_gaussians(resid, grown, fit, xy[fit], blobs.flux[fit], psf,
                                           local_sigma(camera, xy[fit], self.psf_sigma_px))
@@ -690,6 +690,41 @@ def _link_streaks(xy, flux, good, streak, centre, axis, var_major, sigma_px):
     xy[index[usable]] = joined_xy[group[index[usable]]]
     good[index] = first[group[index]] == index
     return xy, flux, good
+
+
+def _cut_by_border(blobs: _Blobs, xy: np.ndarray, noise: np.ndarray, margin: int, point: np.ndarray,
+                   sigma: np.ndarray | float) -> np.ndarray:
+    """Whether each blob is cut by the image border (n,): its un-grown pixels reach within ``margin`` px of it and
+    what it loses beyond the border may pull its centroid ``xy`` (px) by more than EDGE_BIAS_PX.
+
+    A ``point`` blob (an unsaturated spot, not a streak) is the PSF, a Gaussian of ``sigma`` px: cutting it at a
+    distance d from its centre pulls the centroid by ``sigma phi(d / sigma) / Phi(d / sigma)`` (the truncated
+    normal's mean).  Any other blob's light is taken to fall off outwards where it meets the border, so what lies
+    beyond is at most what its pixels on the outermost row or column hold (plus 2 noise sigmas), pulling the
+    centroid by that fraction of the flux times the distance to the first pixel centre beyond the border plus half
+    a pixel: a trail that runs off the frame fails this bound, a saturated star whose wings reach it passes."""
+    height, width = noise.shape
+    n, c = blobs.n, blobs.in_core
+    x, y = blobs.x[c], blobs.y[c]
+    near = np.bincount(blobs.label[c], (x <= margin) | (y <= margin) | (x >= width - 1 - margin)
+                       | (y >= height - 1 - margin), n) > 0
+    if not near.any():
+        return near
+    x, y = blobs.x, blobs.y
+    rim = np.flatnonzero((x == 0) | (y == 0) | (x == width - 1) | (y == height - 1))  # the outermost pixels
+    x, y, label, resid = x[rim], y[rim], blobs.label[rim], blobs.resid[rim]
+    variance = noise.ravel()[blobs.pixel[rim]].astype(np.float64) ** 2
+    flux = np.maximum(blobs.flux, 0.0)
+    pull = np.zeros(n)
+    for on_edge, distance in ((x == 0, xy[:, 0] + 1.5), (y == 0, xy[:, 1] + 1.5),
+                              (x == width - 1, width + 0.5 - xy[:, 0]), (y == height - 1, height + 0.5 - xy[:, 1])):
+        light = np.bincount(label[on_edge], resid[on_edge], n)
+        spread = np.sqrt(np.bincount(label[on_edge], variance[on_edge], n))
+        measured = (np.maximum(light, 0.0) + 2.0 * spread) * distance / np.maximum(flux, 1e-300)
+        t = np.maximum(distance - 1.0, 0.0) / sigma  # the border lies half a pixel beyond the outermost centres
+        modelled = sigma * np.exp(-0.5 * t**2) / math.sqrt(2.0 * math.pi) / np.maximum(ndtr(t), 1e-300)
+        pull = np.maximum(pull, np.where(point, modelled, measured))
+    return near & ~((pull <= EDGE_BIAS_PX) & (flux > 0.0))
 
 
 class _Blobs:

@@ -34,7 +34,6 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from scipy.stats import beta
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -42,6 +41,7 @@ sys.path.insert(0, str(ROOT))
 from starenv.agents.detect.centroid import CentroidDetector  # noqa: E402
 from starenv.datasets import load_spec  # noqa: E402
 from starenv.datasets.samples import draw, render  # noqa: E402
+from starenv.datasheet import binomial_interval  # noqa: E402
 from starenv.scoring import CENTROID_GATE_PX, trail_distance  # noqa: E402
 from starenv.sim.conventions import pointing, radec_to_unit, unit_to_radec  # noqa: E402
 from starenv.sim.sky import load_catalog  # noqa: E402
@@ -89,14 +89,6 @@ def frame(spec, index: int):
     return params, render(spec, params)[1]
 
 
-def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
-    """Two-sided interval on a binomial rate from ``k`` of ``n``."""
-    tail = (1.0 - level) / 2.0
-    low = 0.0 if k == 0 else float(beta.ppf(tail, k, n - k + 1))
-    high = 1.0 if k == n else float(beta.ppf(1.0 - tail, k + 1, n - k))
-    return low, high
-
-
 def run(frames: int, seeds: list[int], agent=None, log=print, spec: str | Path = SPEC) -> dict:
     """Tally wrong / refused / right over ``frames`` frames of each seed of ``spec``'s sensor and sky; ``agent`` a
     NetworkIdentifier (default: the shipped Orion weights, default settings)."""
@@ -133,7 +125,7 @@ def run(frames: int, seeds: list[int], agent=None, log=print, spec: str | Path =
             tally["right"] += 1
             right_error_deg.append(error_deg)
     n = frames * len(seeds)
-    low, high = clopper_pearson(tally["wrong"], n)
+    low, high = binomial_interval(tally["wrong"], n)
     return {"frames": n, "seeds": seeds, **tally, "wrong_rate_95": [low, high], "right_rate": tally["right"] / n,
             "wrong_frames": wrong_frames, "max_right_error_deg": max(right_error_deg), "max_false": agent.max_false}
 

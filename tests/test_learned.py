@@ -187,6 +187,36 @@ def test_batches_are_the_samples_of_their_indices_turned_as_drawn(toy):
             assert b == 1  # 256 // 96 whole batches
 
 
+def test_turns_about_the_centre_block_keep_the_main_star_pixel_and_follow_the_index_formula():
+    """A turn by 90 deg about pixel (c, c), c = S // 2, where a ``centre = "main_star"`` input holds its main star,
+    moves pixel (r, col) to (c - (col - c), c + (r - c)) (``torch.rot90``'s sense), zero where that source lies
+    outside the image; checked pixel by pixel for even and odd S.  A turn about the image centre (the frame-centred
+    inputs' turn) would move the main star's pixel for an even S."""
+    from starenv.agents.identify.network_train import rot90
+
+    for size in (8, 9):
+        c = size // 2
+        images = torch.arange(1, 64 * size * size + 1, dtype=torch.float32).reshape(64, size, size)
+        g = torch.Generator().manual_seed((3 * 1_000_003 + 1) * 1_000_003 + 0)
+        turns = torch.randint(0, 4, (64,), generator=g).tolist()
+        out = rot90(images, 3, 1, 0, about_block=True)
+        assert set(turns) == {0, 1, 2, 3}
+        for n, q in enumerate(turns):
+            expected = torch.zeros(size, size)
+            for i in range(size):
+                for j in range(size):
+                    r, col = i, j
+                    for _ in range(q):  # the source of (r, col) under one more quarter turn
+                        r, col = col, 2 * c - r
+                    if 0 <= r < size and 0 <= col < size:
+                        expected[i, j] = images[n, r, col]
+            assert torch.equal(out[n], expected), (size, q)
+            assert out[n, c, c] == images[n, c, c]
+        frame_turn = rot90(images, 3, 1, 0)
+        moved = [n for n, q in enumerate(turns) if q and frame_turn[n, c, c] != images[n, c, c]]
+        assert bool(moved) == (size % 2 == 0)
+
+
 def test_a_set_is_held_in_memory_only_when_it_fits(toy, monkeypatch):
     from starenv.agents.identify import network_data
     from starenv.agents.identify.network_data import ShardDataset, fits_in_memory

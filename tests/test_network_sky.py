@@ -53,7 +53,8 @@ def test_frames_anywhere_on_the_sky_are_identified_and_never_wrong(agent):
 
 def test_a_frame_is_read_once_per_detection_near_the_centre_centred_on_it(agent, monkeypatch):
     """The recentred network reads one input per each of the ``centre_stars`` detections nearest the principal
-    point, nearest first, each the frame's input shifted to put that detection's block at its centre."""
+    point, nearest first, each the frame's input shifted to put that detection's block at its centre (its turned
+    readings follow in the same batch, checked by the next test)."""
     from starenv.agents.detect.centroid import CentroidDetector
     from starenv.datasets.preprocess import network_input, recentred
 
@@ -69,4 +70,41 @@ def test_a_frame_is_read_once_per_detection_near_the_centre_centred_on_it(agent,
     agent.identify([found], [cam], None, [image])
     nearest = np.argsort(np.hypot(found.xy[:, 0] - cam.cx, found.xy[:, 1] - cam.cy))[: agent.centre_stars]
     base = network_input(image, agent.net.config.input_size)
-    assert np.array_equal(seen[0], np.stack([recentred(base, image.shape, found.xy[m]) for m in nearest]))
+    plain = np.stack([recentred(base, image.shape, found.xy[m]) for m in nearest])
+    assert len(seen) == 1 and len(seen[0]) == agent.turns * len(nearest)  # one batch: every reading of every input
+    assert np.array_equal(seen[0][: len(nearest)], plain)  # the unturned readings first, in order
+
+
+def test_the_ranking_averages_the_log_probabilities_of_four_turns_about_the_main_stars_pixel(agent):
+    """The default for a network trained on centred inputs: each recentred input is also read turned by 90, 180 and
+    270 deg about its pixel (S // 2, S // 2) (np.rot90 of the input padded by a zero row and column below and right,
+    cropped back: an independent construction), and the ranking is the softmax of the four readings' mean
+    log-probabilities; ``turns=1`` ranks the plain reading alone."""
+    import torch
+
+    from starenv.datasets.preprocess import network_input, recentred
+
+    assert agent.turns == 4 and NetworkIdentifier("paper002_orion").turns == 1
+    spec = bench.off_spec(TEST_SEED, SPEC)
+    image = bench.frame(spec, 1)[1].heads[0].image
+    centres = np.array([[500.3, 520.8], [130.0, 900.5]])
+    base = network_input(image, agent.net.config.input_size)
+    inputs = np.stack([recentred(base, image.shape, c) for c in centres])
+    size = inputs.shape[-1]
+    padded = np.pad(inputs, ((0, 0), (0, 1), (0, 1)))
+    readings = [np.ascontiguousarray(np.rot90(padded, q, axes=(1, 2))[:, :size, :size]) for q in range(4)]
+    assert all(np.array_equal(r[:, size // 2, size // 2], inputs[:, size // 2, size // 2]) for r in readings)
+    with torch.no_grad():
+        logs = [torch.log_softmax(agent.net(torch.from_numpy(r)), dim=1).numpy() for r in readings]
+    mean = np.mean(logs, axis=0)
+    expected = np.exp(mean - mean.max(axis=1, keepdims=True))
+    expected /= expected.sum(axis=1, keepdims=True)
+    ranked, prob = agent.rank(image, centres)
+    order = np.argsort(-expected, axis=1, kind="stable")[:, :10]  # the head of the ranking: the tail's ties may
+    assert np.array_equal(ranked[:, :10], agent.classes[order])  # swap with the batch's float rounding
+    np.testing.assert_allclose(prob, -np.sort(-expected, axis=1), rtol=1e-4, atol=1e-7)
+    plain = NetworkIdentifier(WEIGHTS, turns=1)
+    with torch.no_grad():
+        one = torch.softmax(plain.net(torch.from_numpy(inputs)), dim=1).numpy()
+    np.testing.assert_allclose(plain.rank(image, centres)[1], -np.sort(-one, axis=1), rtol=1e-4, atol=1e-7)
+    assert not np.allclose(prob, plain.rank(image, centres)[1], rtol=1e-2, atol=1e-4)

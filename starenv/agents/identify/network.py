@@ -61,6 +61,19 @@ MAX_WEIGHTS_BYTES = 4 * MAX_PARAMETERS + (1 << 24)  # float32 parameters, BatchN
 IDENTITY_KEYS = ("config", "classes_hip", "camera", "weights_sha256")  # what the identity hash covers
 
 
+def turned(images: torch.Tensor, quarters: int, about_block: bool) -> torch.Tensor:
+    """``images`` (..., S, S) turned by ``quarters`` x 90 deg (``torch.rot90``'s sense): about the image centre, or
+    with ``about_block`` about the centre of pixel (S // 2, S // 2), where a network trained on centred inputs reads
+    its main star (for an even S one row and column of zeros enter at the edges the turn moves away from).  A
+    permutation of pixels (and zeros)."""
+    if quarters % 4 == 0:
+        return images
+    size = images.shape[-1]
+    pad = 1 - size % 2 if about_block else 0  # a zero row and column below and right: pixel S // 2 is the centre
+    padded = torch.nn.functional.pad(images, (0, pad, 0, pad)) if pad else images
+    return torch.rot90(padded, quarters, dims=(-2, -1))[..., :size, :size]
+
+
 def manifest_hashes(manifest: dict, weights: bytes) -> dict:
     """The manifest's hashes of a run: ``weights_sha256`` (SHA-256 of weights.pt's bytes) and ``identity_sha256``
     (SHA-256 of the compact sorted JSON of :data:`IDENTITY_KEYS`: config, class order, camera and weights).  They
@@ -184,6 +197,9 @@ class NetworkIdentifier:
     ``verify_radius_px``: pairing radius of the verification, the bound's (px); ``min_matches``: pairs needed;
     ``max_false``: largest accepted bound on the probability of a wrong attitude per frame;
     ``centre_stars``: detections nearest the principal point each candidate is put on;
+    ``turns``: 1, 2 or 4 readings of each input, turned by multiples of 90 deg about the point the network reads
+    its main star at (:func:`turned`; a turn of the sky keeps the main star, as training's ``--rot90`` uses), their
+    log-probabilities averaged; None: 4 for a network trained on centred inputs, 1 for one read whole;
     ``threads``: torch's CPU thread count, set for the whole process (one frame at a time: one thread is fastest,
     and on a loaded machine threads that wait for busy cores slow a forward pass many times; None leaves torch's
     setting).
@@ -191,10 +207,12 @@ class NetworkIdentifier:
 
     def __init__(self, weights: str | Path = DEFAULT_WEIGHTS, device: str = "cpu", top_k: int = 3, rolls: int = 3,
                  radius_px: float = 2.0, min_matches: int = 5, max_false: float = 1e-5, threads: int | None = 1,
-                 centre_stars: int = 5, verify_radius_px: float = 1.0):
+                 centre_stars: int = 5, verify_radius_px: float = 1.0, turns: int | None = None):
         if top_k < 1 or rolls < 1 or min_matches < 2 or centre_stars < 1:
             raise ValueError(f"top_k, rolls, centre_stars >= 1 and min_matches >= 2 expected, got {top_k}, {rolls}, "
                              f"{centre_stars}, {min_matches}")
+        if turns not in (None, 1, 2, 4):
+            raise ValueError(f"turns: expected 1, 2, 4 or None, got {turns!r}")
         if not radius_px > 0 or not verify_radius_px > 0 or not 0 < max_false < 1:
             raise ValueError(f"radius_px, verify_radius_px > 0 and max_false in (0, 1) expected, got {radius_px}, "
                              f"{verify_radius_px}, {max_false}")
@@ -203,6 +221,8 @@ class NetworkIdentifier:
         self.weights = shipped_weights(weights)
         self.net, self.manifest = load_network(self.weights, device)
         self.centre_stars = centre_stars
+        self.centred = self.net.config.centre == "main_star"
+        self.turns = turns if turns is not None else 4 if self.centred else 1
         self.device = device
         self.classes = np.asarray(self.manifest["classes_hip"], dtype=np.int64)
         self.top_k, self.rolls, self.radius_px = top_k, rolls, radius_px
@@ -228,7 +248,11 @@ class NetworkIdentifier:
         (n, classes)."""
         inputs = network_input(image, self.net.config.input_size)
         batch = inputs[None] if centres is None else np.stack([recentred(inputs, image.shape, c) for c in centres])
-        prob = torch.softmax(self.net(torch.from_numpy(batch).to(self.device)), dim=1).cpu().numpy()
+        batch = torch.from_numpy(batch).to(self.device)
+        quarters = range(0, 4, 4 // self.turns)
+        readings = torch.cat([turned(batch, q, self.centred) for q in quarters])
+        log_prob = torch.log_softmax(self.net(readings), dim=1).reshape(self.turns, len(batch), -1).mean(dim=0)
+        prob = torch.softmax(log_prob, dim=1).cpu().numpy()
         order = np.argsort(-prob, axis=1, kind="stable")
         ranked, prob = self.classes[order], np.take_along_axis(prob, order, axis=1)
         return (ranked[0], prob[0]) if centres is None else (ranked, prob)
@@ -246,7 +270,7 @@ class NetworkIdentifier:
         cam, det = cameras[0], stars[0].xy
         centre = np.argsort(np.hypot(det[:, 0] - cam.cx, det[:, 1] - cam.cy), kind="stable")[: self.centre_stars]
         t0 = time.perf_counter()
-        if self.net.config.centre == "main_star":  # each centre detection's own candidates, the likeliest first
+        if self.centred:  # each centre detection's own candidates, the likeliest first
             if not len(centre):
                 return none
             ranked, prob = self.rank(images[0], det[centre])

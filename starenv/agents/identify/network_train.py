@@ -11,9 +11,12 @@
   ``CUBLAS_WORKSPACE_CONFIG=:4096:8`` is set before CUDA starts (cuBLAS needs it to be deterministic) and the
   network has no op without a deterministic CUDA kernel (the background median is taken in numpy when the data is
   made); CUDA results are repeatable on one GPU model, driver and torch build, but differ from the CPU's and between
-  GPU models (other kernels, other summation orders).  ``--rot90`` turns each image by a multiple of 90 deg about its
-  centre, drawn from (seed, epoch, batch): a roll of the sensor, which leaves the boresight star's label unchanged
-  (exact for a square sensor whose principal point is the image centre).
+  GPU models (other kernels, other summation orders).  ``--rot90`` turns each image by a multiple of 90 deg, drawn
+  from (seed, epoch, batch), about the point the network reads its main star at, which keeps the label: for
+  ``centre = "frame"`` the image centre, a roll of the sensor (exact for a square sensor whose principal point is the
+  image centre); for ``centre = "main_star"`` the centre of block (S // 2, S // 2), which holds the main star, a
+  turn of the sky about that star (the boresight's offset from it turned with the roll; exact but for the
+  projection's scale change over the field).
 * ``RUN/checkpoint.pt`` (model, optimiser, epoch, batch, metrics so far, and the arguments that decide the result:
   seed, batch, learning rate, epochs, rot90, device, validation set, initial weights) is written after every epoch
   and every ``--checkpoint-every`` batches, whole and then moved into place; ``--resume`` continues from it and
@@ -46,7 +49,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from starenv.agents.identify.network import load_network, manifest_hashes
+from starenv.agents.identify.network import load_network, manifest_hashes, turned
 from starenv.agents.identify.network_data import InMemory, ShardDataset, ShardSampler, fits_in_memory
 from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
 from starenv.files import atomic_file
@@ -66,11 +69,11 @@ def deterministic_cuda_environment() -> None:
 
 class _Batches(torch.utils.data.Dataset):
     """Batch ``b`` of one epoch's order as an item, so ``DataLoader`` workers read whole batches (in order), each
-    turned as :func:`rot90` draws when ``turn`` is (seed, epoch)."""
+    turned as :func:`rot90` draws when ``turn`` is (seed, epoch), about the centre block when ``about_block``."""
 
     def __init__(self, source: ShardDataset | InMemory, order: list[int], batch: int,
-                 turn: tuple[int, int] | None = None):
-        self.source, self.order, self.batch, self.turn = source, order, batch, turn
+                 turn: tuple[int, int] | None = None, about_block: bool = False):
+        self.source, self.order, self.batch, self.turn, self.about_block = source, order, batch, turn, about_block
 
     def __len__(self) -> int:
         return len(self.order) // self.batch
@@ -78,15 +81,16 @@ class _Batches(torch.utils.data.Dataset):
     def __getitem__(self, b: int) -> tuple[torch.Tensor, torch.Tensor]:
         images, labels = self.source.batch(self.order[b * self.batch:(b + 1) * self.batch])
         if self.turn is not None:
-            images = rot90(images, *self.turn, b)
+            images = rot90(images, *self.turn, b, about_block=self.about_block)
         return images, labels
 
 
 def batches(source: ShardDataset | InMemory, order: list[int], batch: int, first: int = 0, workers: int = 0,
-            pin: bool = False, turn: tuple[int, int] | None = None):
+            pin: bool = False, turn: tuple[int, int] | None = None, about_block: bool = False):
     """Batches ``first ..`` of ``order`` (the last partial one dropped), in order: gathered here from an
-    :class:`InMemory` source, read by ``workers`` processes (0: this one) from a :class:`ShardDataset`."""
-    items = _Batches(source, order, batch, turn)
+    :class:`InMemory` source, read by ``workers`` processes (0: this one) from a :class:`ShardDataset`; turned
+    as :func:`rot90` draws when ``turn`` is (seed, epoch)."""
+    items = _Batches(source, order, batch, turn, about_block)
     if isinstance(source, InMemory):
         return (items[b] for b in range(first, len(items)))
     return torch.utils.data.DataLoader(items, batch_size=None, sampler=range(first, len(items)), num_workers=workers,
@@ -140,9 +144,10 @@ def parse_config(pairs: list[str], n_classes: int) -> MainStarConfig:
     return MainStarConfig(n_classes=n_classes, **values)
 
 
-def rot90(images: torch.Tensor, seed: int, epoch: int, batch: int) -> torch.Tensor:
+def rot90(images: torch.Tensor, seed: int, epoch: int, batch: int, about_block: bool = False) -> torch.Tensor:
     """Each image of ``images`` (B, S, S) turned by its own multiple of 90 deg, drawn from (seed, epoch, batch) on
-    the CPU; a permutation of pixels, so the same numbers on any device."""
+    the CPU, about the image's centre or with ``about_block`` about pixel (S // 2, S // 2) (:func:`turned`); a
+    permutation of pixels, so the same numbers on any device."""
     g = torch.Generator().manual_seed((seed * 1_000_003 + epoch) * 1_000_003 + batch)
     k = torch.randint(0, 4, (len(images),), generator=g)
     out = images.clone()
@@ -150,7 +155,7 @@ def rot90(images: torch.Tensor, seed: int, epoch: int, batch: int) -> torch.Tens
         chosen = (k == q).nonzero().flatten()
         if len(chosen):
             chosen = chosen.to(images.device)
-            out[chosen] = torch.rot90(images[chosen], q, dims=(-2, -1))
+            out[chosen] = turned(images[chosen], q, about_block)
     return out
 
 
@@ -282,7 +287,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
             model.train()
             first, t_epoch = state["batch"], time.perf_counter()
             loader = batches(train_source, order, batch, first, workers, pin=device == "cuda" and not in_memory,
-                             turn=(seed, epoch) if rot90 else None)
+                             turn=(seed, epoch) if rot90 else None, about_block=config.centre == "main_star")
             for b, (x, y) in enumerate(loader, start=first):
                 loss = F.cross_entropy(model(x.to(device, non_blocking=True)), y.to(device, non_blocking=True))
                 opt.zero_grad(set_to_none=True)

@@ -36,6 +36,7 @@ import time
 
 import cv2
 import numpy as np
+from env_speed import random_pointing_deg  # run from benchmarks/, whose folder is on the path
 
 from starenv import scenario
 from starenv.agents.detect.centroid import CentroidDetector
@@ -54,12 +55,11 @@ def frames(rate_dps: float, seeds: range) -> tuple[list, object]:
     out = []
     for seed in seeds:
         rng = np.random.default_rng(seed)
-        boresight, axis = rng.normal(size=(2, 3))
-        boresight, axis = boresight / np.linalg.norm(boresight), axis / np.linalg.norm(axis)
-        ra, dec = np.degrees(np.arctan2(boresight[1], boresight[0])) % 360.0, np.degrees(np.arcsin(boresight[2]))
-        sc = scenario.load("paper_002", {"seed": int(seed), "motion.rate_dps": (rate_dps * axis).tolist(),
-                                         "motion.initial_ra_deg": float(ra), "motion.initial_dec_deg": float(dec),
-                                         "motion.initial_roll_deg": float(rng.uniform(0.0, 360.0))})
+        ra, dec, roll = random_pointing_deg(rng)
+        axis = rng.normal(size=3)
+        rate = (rate_dps * axis / np.linalg.norm(axis)).tolist()
+        sc = scenario.load("paper_002", {"seed": int(seed), "motion.rate_dps": rate, "motion.initial_ra_deg": ra,
+                                         "motion.initial_dec_deg": dec, "motion.initial_roll_deg": roll})
         head = StarSensor(sc).next_frame().heads[0]
         out.append((head.image, head.truth))
     return out, sc.heads[0]

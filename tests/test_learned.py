@@ -263,3 +263,35 @@ def test_a_dataset_centred_on_its_main_star_trains_a_network_that_says_so(toy):
     with pytest.raises(ValueError, match="--set centre=frame: the dataset's images are centred on the main_star"):
         train(toy / "train", toy / "d", epochs=1, batch=32, seed=3, config_pairs=[*TOY, 'centre="frame"'],
               progress=False, log=lambda *_: None)
+
+
+def test_the_gpu_run_takes_another_spec_a_config_and_initial_weights_on_the_cpu(tmp_path):
+    """benchmarks/paper002_gpu.py, the GPU run's own code path, on the CPU at a tiny size with the real camera's twin
+    spec: the run's manifest must record that spec's set and camera (1024 x 768 px), the --set config (not the
+    paper-size default) and the --init weights, and the figures the sizes it was told (whole epochs, a fixed set)."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    spec = importlib.util.spec_from_file_location("paper002_gpu", root / "benchmarks" / "paper002_gpu.py")
+    gpu = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gpu)
+    small = ["stem_width=8", "widths=[8,16,16,32,32,64]", "depth=4", "heads=6", "head_dim=64", "mlp_dim=128",
+             "scale_dn=450"]
+    shipped = root / "starenv" / "agents" / "identify" / "weights" / "paper002_sky_small"
+    args = ["--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"), "--device", "cpu", "--jobs", "1",
+            "--workers", "0", "--val", "16", "--samples", "64", "--epochs", "1", "--batch", "16",
+            "--spec", str(root / "datasets" / "tetra3_twin_sky.toml"), "--init", str(shipped), "--lr", "1e-4",
+            "--total-s", "600", "--limit-s", "900", "--preload", "yes"]
+    for pair in small:
+        args += ["--set", pair]
+    assert gpu.main(args) == 0
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    figures = json.loads((tmp_path / "out" / "figures.json").read_text())
+    assert manifest["dataset"]["name"] == "tetra3_twin_sky" and manifest["dataset"]["samples"] == 64
+    assert manifest["camera"]["width"] == 1024 and manifest["camera"]["height"] == 768
+    assert manifest["config"] == {**parse_config(small + ['centre="main_star"', "input_size=64"], 4559).to_dict()}
+    assert manifest["init"]["run"] == str(shipped)
+    assert manifest["epochs_done"] == 1 and figures["train"]["epochs_done"] == 1 and figures["input_size"] == 64
+    state = torch.load(tmp_path / "out" / "weights.pt", weights_only=True)
+    assert all(v.device.type == "cpu" for v in state.values())

@@ -32,7 +32,7 @@ def setup():
     return spec, cam, agent, CentroidDetector(psf_sigma_px=sc.heads[0].psf_sigma_px, max_stars=30)
 
 
-@pytest.mark.parametrize("name", ["paper002_orion", "paper002_sky_small"])
+@pytest.mark.parametrize("name", ["paper002_orion", "paper002_sky_small", "tetra3_twin_sky"])
 def test_shipped_weights_are_tensors_with_their_manifest(name):
     folder = WEIGHTS_DIR / name
     state = torch.load(folder / "weights.pt", weights_only=True)

@@ -2,6 +2,8 @@
 off-centre boresights labelled by the star nearest the centre, the training camera checked at reset, and attitude
 hypotheses built from a main star anywhere in the frame."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -35,14 +37,48 @@ def test_lower_median_is_torch_median(n):
 
 
 def test_network_input_is_the_block_mean_less_its_median():
+    """Square blocks of max(H, W) / size px; a frame that is not square sits at the input's centre, zeros around."""
     frame = np.random.default_rng(0).integers(0, 4096, (2, 96, 64)).astype(np.uint16)  # non-square, two frames
-    got = network_input(frame, 16)
-    blocks = frame.astype(np.float64).reshape(2, 16, 6, 16, 4).mean(axis=(2, 4))  # independent: float64 means
-    middle = np.sort(blocks.reshape(2, -1), axis=1)[:, (16 * 16 - 1) // 2]
-    assert got.dtype == np.float32 and got.shape == (2, 16, 16)
-    assert np.array_equal(got, (blocks.astype(np.float32) - middle.astype(np.float32)[:, None, None]))
-    with pytest.raises(ValueError, match="multiples of the input size"):
-        network_input(frame, 20)
+    got = network_input(frame, 24)  # 4 px blocks: 24 rows x 16 columns of them
+    blocks = frame.astype(np.float64).reshape(2, 24, 4, 16, 4).mean(axis=(2, 4))  # independent: float64 means
+    middle = np.sort(blocks.reshape(2, -1), axis=1)[:, (24 * 16 - 1) // 2]
+    want = np.zeros((2, 24, 24), dtype=np.float32)
+    want[:, :, 4:20] = blocks.astype(np.float32) - middle.astype(np.float32)[:, None, None]
+    assert got.dtype == np.float32 and got.shape == (2, 24, 24)
+    assert np.array_equal(got, want)
+    square = frame[:, :64, :]
+    assert np.array_equal(network_input(square, 16)[0], network_input(square[0], 16))
+    with pytest.raises(ValueError, match="square blocks"):
+        network_input(frame, 20)  # 96 / 20 px is no whole block
+    with pytest.raises(ValueError, match="square blocks"):
+        network_input(frame[:, :, :63], 24)  # 4 px blocks do not tile 63 columns
+
+
+def test_a_centre_lands_on_the_inputs_centre_block_in_a_frame_that_is_not_square():
+    frame = np.zeros((96, 64), dtype=np.uint16)
+    for x, y in [(37, 61), (0, 0), (63, 95), (2, 50)]:
+        frame[:] = 0
+        frame[y, x] = 4000
+        got = network_input(frame, 24, centre=(x + 0.3, y - 0.4))  # within the same pixel's block
+        assert got[12, 12] == 4000 / 16 and np.count_nonzero(got) == 1
+
+
+def test_a_local_background_takes_out_a_sloping_sky_and_leaves_a_star():
+    """A background linear in x and y: away from the edges each block's 5 x 5 median is that block's own level (the
+    median of values symmetric about it; the star's block lies above all 25 of them), so the local input there is
+    exactly the star's block mean and zero elsewhere; the frame's median leaves the slope, hundreds of DN."""
+    rows, cols = np.mgrid[0:192, 0:256]
+    frame = (3000 + cols + rows).astype(np.uint16)  # block means step 16 DN a block: +-64 DN over a 5 x 5 window
+    frame[100:102, 130:132] += 8192  # a star wholly in block (6, 8): its block mean rises by 128 DN
+    local = network_input(frame, 16, background="local")[2:14]  # 12 x 16 blocks at rows 2..13 of the 16 x 16 input
+    inner = local[2:-2, 2:-2]
+    want = np.zeros_like(inner)
+    want[6 - 2, 8 - 2] = 128.0
+    assert np.array_equal(inner, want)
+    flat = network_input(frame, 16)[2:14]
+    assert np.abs(flat).max() > 128  # the slope left in: more than the star
+    with pytest.raises(ValueError, match="background"):
+        network_input(frame, 16, background="mean")
 
 
 def test_a_sample_is_the_env_frame_preprocessed():
@@ -58,6 +94,30 @@ def test_a_sample_is_the_env_frame_preprocessed():
         frame = env.sensor.next_frame().heads[0].image
         assert frame.shape == (1024, 1024)
         assert np.array_equal(sample(spec, index)["image"], network_input(frame, 256))
+
+
+def test_a_sample_of_a_camera_that_is_not_square_is_its_env_frame_centred_on_the_main_star():
+    """The real camera's twin (1024 x 768 px, datasets/tetra3_twin_sky.toml read out whole, no magnitude noise): the
+    training image is the env's frame through the identifier's preprocessing, centred on the main star's block as the
+    truth places it, bit for bit, and that block holds the main star."""
+    root = Path(__file__).resolve().parent.parent
+    twin = load_spec(root / "datasets" / "tetra3_twin_sky.toml").to_dict()
+    spec = load_spec({**twin, "readout": "frame", "samples": 40,
+                      "stars": {**twin["stars"], "magnitude_sigma": 0.0}})  # the env's sky, unedited
+    clean = [i for i in range(40) if draw(spec, i)["variant"] == "clean"][:2]
+    assert clean
+    for index in clean:
+        params = draw(spec, index)
+        env = StarSensorEnv(spec.load_scenario().data, overrides={"motion": motion_table(context(spec).scenario,
+                                                                                          params)})
+        env.sensor.reset(params["sensor_seed"])
+        head = env.sensor.next_frame().heads[0]
+        assert head.image.shape == (768, 1024)
+        hip = navigation_stars(spec)[0][params["main"]]
+        xy = head.truth.xy_centroid[head.truth.catalog_id == hip][0]
+        got = sample(spec, index)["image"]
+        assert np.array_equal(got, network_input(head.image, 64, tuple(xy)))
+        assert got[32, 32] > 5 * np.median(np.abs(got[got != 0]))  # a navigation star's block: far above the noise
 
 
 def test_off_centre_boresights_are_labelled_by_the_nearest_navigation_star():

@@ -108,3 +108,22 @@ def test_the_ranking_averages_the_log_probabilities_of_four_turns_about_the_main
         one = torch.softmax(plain.net(torch.from_numpy(inputs)), dim=1).numpy()
     np.testing.assert_allclose(plain.rank(image, centres)[1], -np.sort(-one, axis=1), rtol=1e-4, atol=1e-7)
     assert not np.allclose(prob, plain.rank(image, centres)[1], rtol=1e-2, atol=1e-4)
+
+
+def test_centre_stars_are_drawn_from_the_brightest_detections():
+    """With ``brightest`` the detections nearest the principal point are chosen among the ``brightest`` by flux only
+    (a deep camera's nearest detections are faint stars no class holds); without it, among all."""
+    from starenv.agents.base import StarMeasurements
+    from starenv.scenario import load_camera
+
+    cam = load_camera(ROOT / "docs" / "real_frames" / "tetra3_twin.toml").camera
+    offsets = np.array([5.0, 10.0, 20.0, 40.0, 80.0, 160.0])  # px from the principal point, nearest first
+    stars = StarMeasurements(xy=np.column_stack([cam.cx + offsets, np.full(6, cam.cy)]),
+                             flux=np.array([10.0, 20.0, 900.0, 30.0, 800.0, 700.0]))
+    near = NetworkIdentifier("tetra3_twin_sky", centre_stars=2)
+    assert near.centre_detections(stars, cam).tolist() == [0, 1]
+    bright = NetworkIdentifier("tetra3_twin_sky", centre_stars=2, brightest=3)
+    assert bright.centre_detections(stars, cam).tolist() == [2, 4]
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="brightest"):
+            NetworkIdentifier("tetra3_twin_sky", brightest=bad)

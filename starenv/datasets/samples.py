@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv import scenario as scenario_mod
 from starenv.datasets.pairs import attitude_pairs
-from starenv.datasets.preprocess import network_input
+from starenv.datasets.preprocess import network_input, square_block
 from starenv.datasets.smear import sharp_reference
 from starenv.datasets.spec import VARIANTS, DatasetSpec
 from starenv.sim.conventions import DEG, frame_span_s, pointing, radec_to_unit, unit_to_radec
@@ -189,7 +189,8 @@ def render(spec: DatasetSpec, params: dict) -> tuple[StarSensor, object]:
     base = spec.load_scenario(params["randomized"]) if params["randomized"] else context(spec).scenario
     sc = scenario_mod.with_motion(base, motion_table(base, params))
     catalog = _edited_sky(spec, sc, params, rng)
-    block = sc.heads[0].camera.width // spec.input_size if spec.readout == "binned" else 1
+    cam = sc.heads[0].camera
+    block = square_block(cam.width, cam.height, spec.input_size) if spec.readout == "binned" else 1
     sensor = StarSensor(sc, catalog=catalog, readout_block=block)
     sensor.reset(params["sensor_seed"])
     return sensor, sensor.next_frame()

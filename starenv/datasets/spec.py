@@ -15,7 +15,8 @@ the top level is optional)::
     seed = 0                      # sample i draws from np.random.SeedSequence([seed, i])
     input_size = 256              # main_star: the image stored is the frame area-resized to input_size^2 px with its
                                   # background (median) subtracted, the network's input (datasets/preprocess.py);
-                                  # default: the largest multiple of 16 up to 256 that divides both frame sides
+                                  # default: the largest multiple of 16 up to 256 the frame resizes to in whole
+                                  # square blocks (max(width, height) / input_size px, dividing both sides)
     readout = "frame"             # main_star: "frame" reads the whole frame out and resizes it; "binned" draws its
                                   # block means directly (equal in distribution, far cheaper: Detector.read_out_binned)
     centre = "frame"              # main_star: what sits at the input's centre: the frame's ("frame", the paper's
@@ -76,6 +77,7 @@ from typing import Any
 
 from starenv import scenario as scenario_mod
 from starenv.config import REQUIRED, ConfigError, Table, parse_toml
+from starenv.datasets.preprocess import square_block
 
 FORMAT_VERSION = 1
 KINDS = ("main_star", "centroids", "position_pairs", "smear_pairs")
@@ -208,10 +210,11 @@ def _unset_dropped(data: dict) -> dict:
 
 
 def default_input_size(width: int, height: int) -> int:
-    """The largest multiple of 16 up to 256 dividing both sides of a ``width`` x ``height`` px frame (the network
-    input of a ``main_star`` spec that names none); their greatest common divisor when none does."""
-    common = math.gcd(width, height)
-    return next((d for d in range(min(common, 256), 0, -1) if common % d == 0 and d % 16 == 0), common)
+    """The largest multiple of 16 up to 256 that a ``width`` x ``height`` px frame area-resizes to in whole square
+    blocks (:func:`~starenv.datasets.preprocess.square_block`; the network input of a ``main_star`` spec that names
+    none); the frame's longer side over the greatest common divisor of its sides when none does."""
+    fits = [d for d in range(16, 257, 16) if square_block(width, height, d)]
+    return fits[-1] if fits else max(width, height) // math.gcd(width, height)
 
 
 def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec:
@@ -318,7 +321,7 @@ def load_spec(spec: str | Path | dict, source: str | None = None) -> DatasetSpec
     if kind == "main_star" and input_size is None:
         input_size = default_input_size(camera.width, camera.height)
         spec = dataclasses.replace(spec, input_size=input_size)
-    if input_size is not None and (camera.width % input_size or camera.height % input_size):
-        top.fail("input_size", f"a size that divides head 0's {camera.width} x {camera.height} px frame (the frame is "
-                 f"area-resized in whole blocks)", input_size)
+    if input_size is not None and square_block(camera.width, camera.height, input_size) is None:
+        top.fail("input_size", f"a size that head 0's {camera.width} x {camera.height} px frame area-resizes to in "
+                 f"whole square blocks (its longer side over the size, dividing both sides)", input_size)
     return spec

@@ -47,7 +47,7 @@ from starenv.agents.base import StarMeasurements
 from starenv.agents.identify.geometry import body_vectors, with_ids
 from starenv.agents.identify.network_model import MAX_PARAMETERS, MainStarConfig, MainStarNet, parameter_count
 from starenv.agents.identify.verify import verify_any_search
-from starenv.datasets.preprocess import network_input, recentred
+from starenv.datasets.preprocess import BACKGROUNDS, network_input, recentred
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog, load_catalog
 
@@ -196,10 +196,14 @@ class NetworkIdentifier:
     ``rolls``: roll hypotheses per candidate; ``radius_px``: pairing radius of the search (px);
     ``verify_radius_px``: pairing radius of the verification, the bound's (px); ``min_matches``: pairs needed;
     ``max_false``: largest accepted bound on the probability of a wrong attitude per frame;
-    ``centre_stars``: detections nearest the principal point each candidate is put on;
+    ``centre_stars``: detections nearest the principal point each candidate is put on; ``brightest``: those are drawn
+    from the ``brightest`` detections by flux only (None: from all; a deep camera's detections nearest the centre are
+    mostly stars far fainter than any class);
     ``turns``: 1, 2 or 4 readings of each input, turned by multiples of 90 deg about the point the network reads
     its main star at (:func:`turned`; a turn of the sky keeps the main star, as training's ``--rot90`` uses), their
     log-probabilities averaged; None: 4 for a network trained on centred inputs, 1 for one read whole;
+    ``background``: how the frame's background is taken out before the network (``"median"``, as in training, or
+    ``"local"`` for a real camera whose background is not flat: :func:`starenv.datasets.preprocess.network_input`);
     ``threads``: torch's CPU thread count, set for the whole process (one frame at a time: one thread is fastest,
     and on a loaded machine threads that wait for busy cores slow a forward pass many times; None leaves torch's
     setting).
@@ -207,10 +211,16 @@ class NetworkIdentifier:
 
     def __init__(self, weights: str | Path = DEFAULT_WEIGHTS, device: str = "cpu", top_k: int = 3, rolls: int = 3,
                  radius_px: float = 2.0, min_matches: int = 5, max_false: float = 1e-5, threads: int | None = 1,
-                 centre_stars: int = 5, verify_radius_px: float = 1.0, turns: int | None = None):
+                 centre_stars: int = 5, verify_radius_px: float = 1.0, turns: int | None = None,
+                 background: str = "median", brightest: int | None = None):
         if top_k < 1 or rolls < 1 or min_matches < 2 or centre_stars < 1:
             raise ValueError(f"top_k, rolls, centre_stars >= 1 and min_matches >= 2 expected, got {top_k}, {rolls}, "
                              f"{centre_stars}, {min_matches}")
+        if brightest is not None and (isinstance(brightest, bool) or not isinstance(brightest, int)
+                                      or brightest < 1):
+            raise ValueError(f"brightest: expected None or an integer >= 1, got {brightest!r}")
+        if background not in BACKGROUNDS:
+            raise ValueError(f"background: expected one of {', '.join(BACKGROUNDS)}, got {background!r}")
         if turns not in (None, 1, 2, 4):
             raise ValueError(f"turns: expected 1, 2, 4 or None, got {turns!r}")
         if not radius_px > 0 or not verify_radius_px > 0 or not 0 < max_false < 1:
@@ -221,6 +231,8 @@ class NetworkIdentifier:
         self.weights = shipped_weights(weights)
         self.net, self.manifest = load_network(self.weights, device)
         self.centre_stars = centre_stars
+        self.background = background
+        self.brightest = brightest
         self.centred = self.net.config.centre == "main_star"
         self.turns = turns if turns is not None else 4 if self.centred else 1
         self.device = device
@@ -246,7 +258,7 @@ class NetworkIdentifier:
         """Navigation stars (HIP) ranked as the main star of a raw frame, and their softmax probabilities; with
         ``centres`` ((n, 2) px, for a network trained on centred inputs), ranked as the star at each centre: arrays
         (n, classes)."""
-        inputs = network_input(image, self.net.config.input_size)
+        inputs = network_input(image, self.net.config.input_size, background=self.background)
         batch = inputs[None] if centres is None else np.stack([recentred(inputs, image.shape, c) for c in centres])
         batch = torch.from_numpy(batch).to(self.device)
         quarters = range(0, 4, 4 // self.turns)
@@ -256,6 +268,14 @@ class NetworkIdentifier:
         order = np.argsort(-prob, axis=1, kind="stable")
         ranked, prob = self.classes[order], np.take_along_axis(prob, order, axis=1)
         return (ranked[0], prob[0]) if centres is None else (ranked, prob)
+
+    def centre_detections(self, stars: StarMeasurements, cam: Camera) -> np.ndarray:
+        """Indices of the ``centre_stars`` detections nearest the principal point (among the ``brightest``)."""
+        pool = np.arange(len(stars.xy))
+        if self.brightest is not None and len(pool) > self.brightest:
+            pool = np.sort(np.argsort(-stars.flux, kind="stable")[: self.brightest])
+        dist = np.hypot(stars.xy[pool, 0] - cam.cx, stars.xy[pool, 1] - cam.cy)
+        return pool[np.argsort(dist, kind="stable")[: self.centre_stars]]
 
     def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None = None,
                  images: list[np.ndarray | None] | None = None) -> list[StarMeasurements]:
@@ -268,7 +288,7 @@ class NetworkIdentifier:
         if images is None or images[0] is None:
             return none
         cam, det = cameras[0], stars[0].xy
-        centre = np.argsort(np.hypot(det[:, 0] - cam.cx, det[:, 1] - cam.cy), kind="stable")[: self.centre_stars]
+        centre = self.centre_detections(stars[0], cam)
         t0 = time.perf_counter()
         if self.centred:  # each centre detection's own candidates, the likeliest first
             if not len(centre):

@@ -321,7 +321,7 @@ def train(data: str | Path, out: str | Path, *, val: str | Path | None = None, e
         bar.close()
     checkpoint()
     weights = io.BytesIO()
-    torch.save(model.state_dict(), weights)
+    torch.save(model.cpu().state_dict(), weights)  # CPU tensors wherever it trained: the weights load anywhere
     with atomic_file(out / "weights.pt") as f:
         f.write(weights.getvalue())
     manifest = {

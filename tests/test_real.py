@@ -178,17 +178,21 @@ def test_real_frames_need_the_measured_spot(real_solutions):
 def test_a_network_trained_only_on_the_twins_frames_identifies_real_frames_and_never_wrongly():
     """Sim to real: paper 002's network trained only on frames of the camera's twin (the shipped tetra3_twin_sky
     weights), with the local background (the real sky is not flat) and its centre stars drawn from the 20 brightest
-    detections, inside the solver, beside the lost-in-space identifier in the same solver and camera (checked
-    against cedar-solve above).  Every label the network gives must be the one the lost-in-space solution gives the
-    same detection, and the two attitudes must agree within 30 arcsec (0.75 px; a wrong main star or roll is degrees
-    off); at least one of the three frames must be solved (a network that reads the real frames wrongly solves none:
-    with the frame's median as background, none is)."""
+    detections, as the pipeline file the docs give to `starenv solve` sets it up, beside the lost-in-space identifier
+    in the same solver and camera (checked against cedar-solve above).  Every label the network gives must be the
+    one the lost-in-space solution gives the same detection, and the two attitudes must agree within 30 arcsec
+    (0.75 px; a wrong main star or roll is degrees off); at least one of the three frames must be solved (a network
+    that reads the real frames wrongly solves none: with the frame's median as background, none is)."""
     from starenv.agents.pipeline import Pipeline
 
-    camera = load_camera(Path(__file__).parent.parent / "docs" / "real_frames" / "tetra3_twin.toml").camera
-    options = {"weights": "tetra3_twin_sky", "background": "local", "brightest": 20, "centre_stars": 15, "top_k": 10}
-    network = FrameSolver(camera, Pipeline(predictor=None, identifier="starenv.agents.identify:NetworkIdentifier",
-                                           options={"identifier": options}), epoch=EPOCH, fov_tolerance=0.0)
+    docs = Path(__file__).parent.parent / "docs" / "real_frames"
+    camera = load_camera(docs / "tetra3_twin.toml").camera
+    pipeline = Pipeline.from_spec(scenario.load_pipeline(docs / "tetra3_twin_network.toml"))
+    identifier = pipeline.agents["identifier"]
+    assert identifier.weights.name == "tetra3_twin_sky" and pipeline.agents["predictor"] is None
+    assert (identifier.background, identifier.brightest, identifier.centre_stars, identifier.top_k) == \
+        ("local", 20, 15, 10)
+    network = FrameSolver(camera, pipeline, epoch=EPOCH, fov_tolerance=0.0)
     classical = FrameSolver(camera, epoch=EPOCH, fov_tolerance=0.0)
     solved = 0
     for path in FRAMES:

@@ -4,8 +4,8 @@ real frames, beside the same fields simulated by the twin (the control).
 The camera is tetra3's test camera; its twin is ``docs/real_frames/tetra3_twin.toml`` (``starenv calibrate``), the
 weights ``tetra3_twin_sky`` (trained on ``datasets/tetra3_twin_sky.toml`` only; docs/paper002_identification.md).
 Every frame is first solved by the project's lost-in-space solver with the twin camera (``FrameSolver``, no field
-search); its attitude and labels are the reference (that solver agrees with cedar-solve to about an arcsecond on these
-frames: docs/real_frames.md).  Then, for each background (``median``: the frame's median, as in training; ``local``:
+search); its attitude and labels are the reference (that solver is checked against cedar-solve on these frames:
+docs/real_frames.md).  Then, for each background (``median``: the frame's median, as in training; ``local``:
 a 5 x 5 block median, :func:`starenv.datasets.preprocess.network_input`) and each search (``centre_stars`` x
 ``top_k``):
 

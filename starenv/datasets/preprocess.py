@@ -13,7 +13,7 @@ needs no median on the GPU, where torch has no deterministic one.
 
 ``background = "local"`` subtracts instead each block's median over the ``LOCAL_BLOCKS`` x ``LOCAL_BLOCKS`` blocks
 about it (edges repeated): a real camera's background is not flat (its lens vignettes the sky glow, the glow itself
-has a gradient), and a frame's global median leaves that dome in the input, hundreds of DN where a star is tens.  On a
+has a gradient), and a frame's global median leaves that dome in the input, above a faint star's signal.  On a
 simulated frame, whose background is flat, both give the same input but for the noise of the estimate.
 
 With a ``centre`` (x, y px of the frame) the input is shifted by whole blocks so that the block holding that point

@@ -3,7 +3,7 @@
 paper-size configuration trained, top-1 / top-5 on the held-out set, and the figures written as JSON.
 
     python benchmarks/paper002_gpu.py --out OUT [--work DIR] [--device cuda] [--jobs 16] [--data-s 150]
-                                      [--train-s 170] [--val 2000] [--input 256] [--samples N] [--epochs E]
+                                      [--train-s 170] [--val 2000] [--input SIZE] [--samples N] [--epochs E]
                                       [--spec SPEC] [--set KEY=VALUE ...] [--init RUN] [--lr LR]
 
 Sizes follow the measured rates: the held-out set (``--val`` samples, seed 1) is built first (its build rate, samples/s
@@ -16,7 +16,7 @@ slow loader shrinks the set rather than leaving epochs unrun (``--samples`` fixe
 Training: the paper-size :class:`~starenv.agents.identify.network_model.MainStarConfig` (``--set`` none but the
 input; ``--set`` pairs as ``starenv train`` takes them make another, ``--init`` starts from a run's weights), Adam,
 batch 160 (the paper's), one-cycle learning rate, random 90-degree rolls, ``--workers`` DataLoader processes.
-``--spec`` trains on another ``main_star`` spec the same way (its input size and centring kept, ``--input`` ignored):
+``--spec`` trains on another ``main_star`` spec the same way (its centring kept, its input size unless ``--input``):
 ``datasets/tetra3_twin_sky.toml`` is the real camera's twin (sim to real).  Writes ``OUT/weights.pt`` and
 ``OUT/manifest.json`` (the run, as ``starenv train`` writes it) and ``OUT/figures.json`` (rates, wall times, epochs,
 accuracy).
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--total-s", type=float, default=400.0, help="the whole run's budget: training gets what is left")
     p.add_argument("--limit-s", type=float, default=450.0, help="the whole run's hard limit (training stops early)")
     p.add_argument("--val", type=int, default=3000)
-    p.add_argument("--input", type=int, default=256)
+    p.add_argument("--input", type=int, default=None, help="network input size (default: the spec's)")
     p.add_argument("--samples", type=int, default=None)
     p.add_argument("--epochs", type=int, default=3, help="passes over the training set the sizes are planned for")
     p.add_argument("--preload", default="auto", help="auto, yes or no (starenv train --preload)")
@@ -157,9 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="paper002_gpu-"))
     out.mkdir(parents=True, exist_ok=True)
     base = load_spec(args.spec)
-    is_paper = Path(args.spec).resolve() == SPEC
-    size = args.input if is_paper else None  # another spec keeps its own input size
-    name = base.name if not is_paper else "paper002_sky"
+    size, name = args.input, base.name
     val_spec = spec_with(base, args.val, 1, f"{name}_val", input_size=size)
     figures: dict = {"spec": Path(args.spec).name, "device": args.device, "jobs": args.jobs,
                      "input_size": val_spec.input_size, "batch": args.batch, "lr": args.lr, "set": args.set,

@@ -45,7 +45,7 @@ from starenv.agents.pipeline import Pipeline  # noqa: E402
 from starenv.datasheet import binomial_interval  # noqa: E402
 from starenv.env import StarSensorEnv  # noqa: E402
 from starenv.real import FrameSolver, read_frame  # noqa: E402
-from starenv.real.solve import LOST_IN_SPACE  # noqa: E402
+from starenv.real.solve import LOST_IN_SPACE, radec_roll  # noqa: E402
 
 CAMERA = ROOT / "docs" / "real_frames" / "tetra3_twin.toml"
 SCENARIO = ROOT / "docs" / "real_frames" / "tetra3_twin_scenario.toml"
@@ -66,8 +66,6 @@ def frame_files(folder: Path | None) -> list[Path]:
 
 def rendered(scenario: dict, attitude, seed: int):
     """The twin's frame at the ICRS -> camera ``attitude`` (noise seed ``seed``): head 0 of its first frame."""
-    from starenv.real.solve import radec_roll
-
     ra, dec, roll = radec_roll(attitude)
     motion = {"kind": "constant_rate", "rate_dps": [0.0, 0.0, 0.0], "initial_ra_deg": ra, "initial_dec_deg": dec,
               "initial_roll_deg": roll}

@@ -26,6 +26,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from starenv import checks
+
 BACKGROUNDS = ("median", "local")
 LOCAL_BLOCKS = 5  # the local background's median window (blocks): a star's light falls on at most 4 of its 25
 
@@ -49,8 +51,7 @@ def network_input(frame: np.ndarray, size: int, centre: tuple[float, float] | No
     """The network's input (float32 DN above the background, ``size`` x ``size``) from a raw frame (H, W) or a
     stack of them (B, H, W), shifted to put ``centre`` (x, y px of the frame) at its centre when given;
     ``background``: ``"median"`` or ``"local"`` (see the module docstring)."""
-    if background not in BACKGROUNDS:
-        raise ValueError(f"network input: background {background!r}: expected one of {', '.join(BACKGROUNDS)}")
+    checks.choice("background", background, BACKGROUNDS)
     frame = np.asarray(frame)
     height, width = frame.shape[-2:]
     block = square_block(width, height, size)

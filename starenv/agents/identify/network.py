@@ -43,6 +43,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from starenv import checks
 from starenv.agents.base import StarMeasurements
 from starenv.agents.identify.geometry import body_vectors, with_ids
 from starenv.agents.identify.network_model import MAX_PARAMETERS, MainStarConfig, MainStarNet, parameter_count
@@ -216,11 +217,8 @@ class NetworkIdentifier:
         if top_k < 1 or rolls < 1 or min_matches < 2 or centre_stars < 1:
             raise ValueError(f"top_k, rolls, centre_stars >= 1 and min_matches >= 2 expected, got {top_k}, {rolls}, "
                              f"{centre_stars}, {min_matches}")
-        if brightest is not None and (isinstance(brightest, bool) or not isinstance(brightest, int)
-                                      or brightest < 1):
-            raise ValueError(f"brightest: expected None or an integer >= 1, got {brightest!r}")
-        if background not in BACKGROUNDS:
-            raise ValueError(f"background: expected one of {', '.join(BACKGROUNDS)}, got {background!r}")
+        brightest = None if brightest is None else checks.integer("brightest", brightest, 1, 10**9)
+        background = checks.choice("background", background, BACKGROUNDS)
         if turns not in (None, 1, 2, 4):
             raise ValueError(f"turns: expected 1, 2, 4 or None, got {turns!r}")
         if not radius_px > 0 or not verify_radius_px > 0 or not 0 < max_false < 1:

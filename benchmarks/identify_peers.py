@@ -70,6 +70,7 @@ PRIOR_ERROR_DEG = 0.05
 SEED = 3400  # default seed of the first repeat (no test draws from it)
 TRACK_STARS = 30
 CHECK_SETS = 10  # noise-free sets for the peers' convention check
+LOCKSTEP_SETS = 10  # starenv and tetra3rs take turns timing this many lost-in-space sets
 SOLVED_ARCSEC = 60.0
 ID_TOLERANCE_ARCSEC = 10.0
 PEER_EPOCHS = {"cedar": 2024.0, "tetra3rs": 2016.0}
@@ -132,21 +133,26 @@ def split(sets: dict, name: str) -> list[np.ndarray]:
     return np.split(sets[name], np.cumsum(sets["sizes"])[:-1])
 
 
-def timed_rows(identifier, camera: Camera, stars: list[StarMeasurements], hips: list[np.ndarray], priors) -> list[list]:
-    """Per set [centroids, correct, wrong, solved, latency s] of ``identifier`` (one untimed call first)."""
+def timed_rows(identifier, camera: Camera, stars: list[StarMeasurements], hips: list[np.ndarray], priors,
+               after_chunk=None) -> list[list]:
+    """Per set [centroids, correct, wrong, solved, latency s] of ``identifier`` (one untimed call first);
+    ``after_chunk()``, if given, is called after every ``LOCKSTEP_SETS`` sets (untimed)."""
     identifier.identify([stars[0]], [camera], priors[0])
     rows = []
-    for s, hip, prior in zip(stars, hips, priors, strict=True):
+    for k, (s, hip, prior) in enumerate(zip(stars, hips, priors, strict=True)):
         start = time.perf_counter()
         ids = identifier.identify([s], [camera], prior)[0].catalog_id
         latency = time.perf_counter() - start
         correct, wrong = int(np.sum(ids == hip)), int(np.sum((ids >= 0) & (ids != hip)))
         rows.append([len(s), correct, wrong, correct >= 3 and wrong == 0, latency])
+        if after_chunk is not None and (k + 1) % LOCKSTEP_SETS == 0:
+            after_chunk()
     return rows
 
 
 def run_starenv(camera: Camera, sets: dict, mag_limit: float) -> dict:
-    """starenv's lost-in-space rows on all sets and tracking rows on the 30-star sets, with the database build time."""
+    """starenv's lost-in-space rows on all sets, in lockstep with tetra3rs's (:func:`run_peers`), then its tracking
+    rows on the 30-star sets once the peers are done; the database build time; the peers' results (:class:`PeerRun`)."""
     catalog = load_catalog(mag_limit, EPOCH)
     lis = LostInSpaceIdentifier()
     tracker = TrackingIdentifier(fallback=lis)
@@ -160,12 +166,17 @@ def run_starenv(camera: Camera, sets: dict, mag_limit: float) -> dict:
     track = sets["track"]
     n = sets["track_stars"]
     priors = [Rotation.from_matrix(sets["prior"][i]) for i in track]
+    with PeerRun(sets) as peers:
+        peers.ready()
+        lis_rows = timed_rows(lis, camera, stars, hips, [None] * len(stars), after_chunk=peers.chunk)
+        peer_results = peers.results()
     return {
         "build_s": build_s,
         "database": f"{len(lis.database)} patterns of {len(lis.database.hip)} stars (Hp <= {mag_limit})",
-        "lis": timed_rows(lis, camera, stars, hips, [None] * len(stars)),
+        "lis": lis_rows,
         "tracking": timed_rows(tracker, camera, [StarMeasurements(stars[i].xy[:n], stars[i].flux[:n]) for i in track],
                                [hips[i][:n] for i in track], priors),
+        "peers": peer_results,
     }
 
 
@@ -180,14 +191,55 @@ def peers_python() -> Path:
     return python
 
 
-def run_peers(sets: dict) -> dict:
-    """The peers' rows (see run_peers.py), from a subprocess in their environment."""
-    python = peers_python()
-    with tempfile.TemporaryDirectory() as folder:
-        np.savez(Path(folder) / "sets.npz", **sets)
-        subprocess.run([str(python), str(RUNNER), str(Path(folder) / "sets.npz"), str(Path(folder) / "peers.json")],
-                       check=True)
-        return json.loads((Path(folder) / "peers.json").read_text())
+class PeerRun:
+    """The peers' run (see run_peers.py), a subprocess in their environment, in lockstep with starenv's timing:
+    :meth:`ready` waits until the peers have built their databases and run everything but tetra3rs's lost-in-space
+    timing; then each :meth:`chunk` (called after starenv has timed ``LOCKSTEP_SETS`` sets) lets tetra3rs time the
+    same sets and waits for it, so that both see the machine in the same state; :meth:`results` gives the rows."""
+
+    def __init__(self, sets: dict):
+        self._folder = tempfile.TemporaryDirectory()
+        folder = Path(self._folder.name)
+        np.savez(folder / "sets.npz", **sets)
+        self._result = folder / "peers.json"
+        self._partial = len(sets["sizes"]) % LOCKSTEP_SETS > 0  # a last chunk of fewer sets
+        to_peer, self._go = os.pipe()
+        self._done, from_peer = os.pipe()
+        self._process = subprocess.Popen(
+            [str(peers_python()), str(RUNNER), str(folder / "sets.npz"), str(self._result), "--sync",
+             str(to_peer), str(from_peer), str(LOCKSTEP_SETS)], pass_fds=(to_peer, from_peer))
+        os.close(to_peer)
+        os.close(from_peer)
+        self._to, self._from = os.fdopen(self._go, "wb", buffering=0), os.fdopen(self._done, "rb", buffering=0)
+
+    def __enter__(self) -> PeerRun:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._to.close()
+        self._from.close()
+        if self._process.poll() is None:
+            self._process.kill()
+        self._process.wait()
+        self._folder.cleanup()
+
+    def _wait(self) -> None:
+        if self._from.read(1) != b"d":
+            raise RuntimeError(f"the peers' run ended early (exit status {self._process.wait()})")
+
+    def ready(self) -> None:
+        self._wait()
+
+    def chunk(self) -> None:
+        self._to.write(b"g")
+        self._wait()
+
+    def results(self) -> dict:
+        if self._partial:
+            self._to.write(b"g")
+        if self._process.wait() != 0:
+            raise RuntimeError(f"the peers' run failed (exit status {self._process.returncode})")
+        return json.loads(self._result.read_text())
 
 
 def summary(rows: list[list]) -> dict:
@@ -238,7 +290,7 @@ def compare(args: argparse.Namespace, seed: int) -> dict:
           f"{np.median(sizes):.0f} stars a set (5-95%: {np.percentile(sizes, 5):.0f}-{np.percentile(sizes, 95):.0f}); "
           f"tracking on {len(sets['track'])} sets cut to {TRACK_STARS} stars")
     ours = run_starenv(camera, sets, mag_limit)
-    peers = run_peers(sets)
+    peers = ours["peers"]
     databases = {"starenv": f"{ours['database']}, built (cold) in {ours['build_s']:.2f} s"}
     for name, peer in peers.items():
         databases[name] = f"{peer['database']}, {peer['build']} in {peer['build_s']:.2f} s"

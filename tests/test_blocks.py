@@ -91,6 +91,11 @@ def test_wahba_svd_returns_a_rotation_where_the_best_orthogonal_fit_is_a_reflect
 
     assert loss(attitude) == pytest.approx(loss(scipy_attitude.as_matrix()), abs=1e-12)
     assert loss(attitude) > 1e-3  # a rotation cannot undo the mirror
+    # The flip of the last axis gives the same bits alone as in a batch (here beside problems that need none).
+    batch = np.stack([body, inertial @ Rotation.random(random_state=5).as_matrix().T])
+    together = wahba_svd(batch, np.stack([inertial, inertial]))
+    np.testing.assert_array_equal(together[0], attitude)
+    np.testing.assert_array_equal(together[1], wahba_svd(batch[1], inertial))
 
 
 # --- background and noise --------------------------------------------------------------------------------------------

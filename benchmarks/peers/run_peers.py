@@ -1,7 +1,7 @@
 """cedar-solve and tetra3rs on the centroid sets of ``benchmarks/identify_peers.py``; runs in the peers' own virtual
 environment (numpy < 2), so it imports nothing of starenv.
 
-    python run_peers.py SETS.npz RESULT.json
+    python run_peers.py SETS.npz RESULT.json [--sync READ_FD WRITE_FD CHUNK]
 
 SETS.npz holds flat per-centroid arrays ``xy`` (px, (0, 0) the centre of the top-left pixel, +x right, +y down),
 ``xy_clean`` (the same without noise), ``flux`` and ``unit_cedar``, ``unit_tetra3rs`` (the true stars' ICRS unit
@@ -13,6 +13,10 @@ convention-check sets ``check`` and the scoring tolerances.  RESULT.json gets, p
 time, the convention check and per-set rows [centroids, correct, wrong, solved, latency s] for lost in space (all
 sets) and tracking (tetra3rs only; its hint uncertainty is the prior's error).
 
+With ``--sync`` tetra3rs's lost-in-space timing goes in lockstep with starenv's (``identify_peers.py``): once
+everything before it is done the run writes a byte to WRITE_FD; then, for every CHUNK sets, it waits for a byte on
+READ_FD, times those sets and writes a byte back (none after a last chunk of fewer sets).
+
 Conventions (checked on the noise-free sets every run): cedar-solve takes (y, x) from the top-left corner of the
 image (pixel centres at +0.5) and returns RA, Dec and roll of a frame with +x the boresight, +y image left, +z image
 up; tetra3rs takes (x, y) from the image centre and returns an inertial -> camera matrix with starenv's axes.
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 import time
 
@@ -93,24 +98,55 @@ class Sets:
         return (f"{len(e)}/{len(self.data['check'])} solved, boresight error median {np.median(e[:, 0]):.2f}\" "
                 f"max {e[:, 0].max():.2f}\", roll error median {np.median(e[:, 1]):.1f}\" max {e[:, 1].max():.1f}\"")
 
-    def rows(self, solve, read, indices, stars=None, priors=None) -> list[list]:
+    def rows(self, solve, read, indices, stars=None, priors=None, lockstep=None) -> list[list]:
         """Per-set rows of a peer: ``solve(xy, flux[, prior])`` is the timed call (one untimed call first),
-        ``read(result, xy) -> (estimate, matches)`` its answer."""
+        ``read(result, xy) -> (estimate, matches)`` its answer; ``lockstep`` (:class:`Lockstep`), if given, paces
+        the timing."""
         priors = [()] * len(indices) if priors is None else [(p,) for p in priors]
         cut = slice(stars)
         solve(self.xy[indices[0]][cut], self.flux[indices[0]][cut], *priors[0])
+        if lockstep is not None:
+            lockstep.ready()
         out = []
-        for i, prior in zip(indices, priors, strict=True):
+        for k, (i, prior) in enumerate(zip(indices, priors, strict=True)):
+            if lockstep is not None:
+                lockstep.before(k, len(indices))
             xy = self.xy[i][cut]
             start = time.perf_counter()
             result = solve(xy, self.flux[i][cut], *prior)
             latency = time.perf_counter() - start
             estimate, matches = read(result, xy)
             out.append(self.row(i, len(xy), matches, estimate, latency))
+        if lockstep is not None:
+            lockstep.end(len(indices))
         return out
 
 
 NO_MATCHES = (np.zeros(0, dtype=int), np.zeros((0, 3)))
+
+
+class Lockstep:
+    """Takes turns with the caller over two pipes (see the module docstring): a byte out when ready and after each
+    whole chunk, a byte in before each chunk."""
+
+    def __init__(self, read_fd: int, write_fd: int, chunk: int):
+        self.read, self.write, self.chunk = os.fdopen(read_fd, "rb", buffering=0), os.fdopen(write_fd, "wb",
+                                                                                             buffering=0), chunk
+
+    def ready(self) -> None:
+        self.write.write(b"d")
+
+    def before(self, k: int, count: int) -> None:
+        """Before set ``k`` of ``count``: at a chunk's end say so, at a chunk's start wait for the go."""
+        if k and k % self.chunk == 0:
+            self.write.write(b"d")
+        if k % self.chunk == 0 and self.read.read(1) != b"g":
+            raise RuntimeError("the caller of the lockstep went away")
+
+    def end(self, count: int) -> None:
+        """After the last set: a whole last chunk is answered."""
+        if count % self.chunk == 0:
+            self.write.write(b"d")
 
 
 def cedar(sets: Sets) -> dict:
@@ -146,8 +182,9 @@ def cedar(sets: Sets) -> dict:
     }
 
 
-def tetra3rs_peer(sets: Sets) -> dict:
-    """tetra3rs with a database built for the sets' field from its bundled Gaia + Hipparcos catalogue."""
+def tetra3rs_peer(sets: Sets, lockstep: Lockstep | None = None) -> dict:
+    """tetra3rs with a database built for the sets' field from its bundled Gaia + Hipparcos catalogue; its
+    lost-in-space timing paced by ``lockstep`` if given."""
     import tetra3rs
 
     start = time.perf_counter()
@@ -170,7 +207,8 @@ def tetra3rs_peer(sets: Sets) -> dict:
         catalog = unit_vectors([s.ra_deg for s in stars], [s.dec_deg for s in stars])
         return result.rotation_matrix_icrs_to_camera, (result.matched_centroids.astype(int), catalog)
 
-    lis, track, tracking = sets.rows(solve, read, np.arange(len(sets.xy))), sets.data["track"], []
+    lis = sets.rows(solve, read, np.arange(len(sets.xy)), lockstep=lockstep)
+    track, tracking = sets.data["track"], []
     if len(track):
         tracking = sets.rows(solve, read, track, int(sets.data["track_stars"]), sets.data["prior"][track])
     return {
@@ -186,7 +224,10 @@ def tetra3rs_peer(sets: Sets) -> dict:
 
 def main() -> None:
     path = sys.argv[1]
-    result = {"cedar-solve": cedar(Sets(path, "cedar")), "tetra3rs": tetra3rs_peer(Sets(path, "tetra3rs"))}
+    lockstep = None
+    if len(sys.argv) > 3 and sys.argv[3] == "--sync":
+        lockstep = Lockstep(int(sys.argv[4]), int(sys.argv[5]), int(sys.argv[6]))
+    result = {"cedar-solve": cedar(Sets(path, "cedar")), "tetra3rs": tetra3rs_peer(Sets(path, "tetra3rs"), lockstep)}
     with open(sys.argv[2], "w") as out:
         json.dump(result, out)
 

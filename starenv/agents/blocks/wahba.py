@@ -4,6 +4,7 @@ ones."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import lapack
 
 
 def wahba_svd(body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
@@ -29,9 +30,11 @@ def wahba_svd(body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None
     -----
     With the attitude profile matrix ``B = sum_i w_i b_i r_i^T = U S V^T``, the optimal attitude is
     ``A = U diag(1, 1, d) V^T``, ``d = det(U V^T) = +-1``: the orthogonal matrix nearest ``B``, kept a proper rotation
-    (``d = -1`` flips the axis of the smallest singular value instead of reflecting) [1]_.  Here ``d`` scales U's last
-    column as computed, so its rounding (a few eps off +-1) is part of the result.  A problem gives the same bits
-    alone as in a batch.  The inputs are not checked: this is the inner loop of the identifiers and verifiers;
+    (``d = -1`` flips the axis of the smallest singular value instead of reflecting) [1]_; ``d`` is exactly +-1, the
+    sign of the computed determinant.  A single problem calls LAPACK's ``dgesdd`` directly (the routine
+    ``numpy.linalg.svd`` calls, without its wrapper's cost, most of the time for one 3 x 3 matrix); a batch goes
+    through ``numpy.linalg.svd``.  A problem gives the same bits alone as in a batch (``tests/test_blocks.py``).
+    The inputs are not checked: this is the inner loop of the identifiers and verifiers;
     :class:`starenv.agents.solve.SvdSolver` checks them (shapes, unit length, observability) and calls this.  Fewer
     than two non-parallel pairs leave the rotation about the common direction undetermined, and the result is one of
     the minimisers.
@@ -44,6 +47,13 @@ def wahba_svd(body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None
     """
     if weights is not None:
         body = body * weights[..., None]
-    u, _, vt = np.linalg.svd(np.swapaxes(body, -1, -2) @ inertial)
-    u[..., :, 2] *= np.linalg.det(u @ vt)[..., None]
+    profile = np.swapaxes(body, -1, -2) @ inertial
+    if profile.ndim == 2:
+        u, _, vt, _ = lapack.dgesdd(profile)
+        (a, b, c), (d, e, f), (g, h, i) = (u @ vt).tolist()
+        if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
+            u[:, 2] = -u[:, 2]
+        return u @ vt
+    u, _, vt = np.linalg.svd(profile)
+    u[..., :, 2] *= np.where(np.linalg.det(u @ vt) < 0.0, -1.0, 1.0)[..., None]
     return u @ vt

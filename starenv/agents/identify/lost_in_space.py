@@ -349,16 +349,17 @@ class LostInSpaceIdentifier:
                 _, nearby, dots = solved
                 scalar = isinstance(frame.radius2, float)
                 within = dots >= (frame.cos_radius if scalar else frame.cos_radius[:, None])
-                detection, star = _pairs(within)
-                if len(detection) >= _SCATTER_PAIRS:  # the radius widened to the centroid scatter measured
+                count = int(np.count_nonzero(within))
+                if count >= _SCATTER_PAIRS:  # the radius widened to the centroid scatter measured
                     if scalar:  # mean squared residual (chord^2 = 2 - 2 dot), in match radii squared, per axis
-                        variance = (1.0 - float(np.vdot(dots, within)) / len(detection)) / frame.radius2
+                        variance = (1.0 - float(np.vdot(dots, within)) / count) / frame.radius2
                     else:
+                        detection, star = _pairs(within)
                         variance = float(((1.0 - dots[detection, star]) / frame.radius2[detection]).mean())
                     widen2 = min(_LABEL_SIGMAS**2 * variance, _LABEL_MAX**2)  # (in match radii)
                     if widen2 > 1.0:
-                        cos_label = 1.0 - (0.5 * widen2) * (frame.radius2 if scalar else frame.radius2[:, None])
-                        detection, star = _pairs(dots >= cos_label)
+                        within = dots >= 1.0 - (0.5 * widen2) * (frame.radius2 if scalar else frame.radius2[:, None])
+                detection, star = _pairs(within)
                 detections = detection.tolist()
                 if len(set(detections)) < len(detections):  # some with two or more: left out
                     alone = np.bincount(detection, minlength=len(ids))[detection] == 1
@@ -372,8 +373,8 @@ class LostInSpaceIdentifier:
                 detection, star = closest_per_star(detection, star_of, -dot)
                 radius2 = frame.radius2 if scalar else frame.radius2[detection]
                 variance = (self.centroid_noise_px / self.match_radius_px) ** 2
-                if len(detection) >= _SCATTER_PAIRS:
-                    variance = float(np.mean((1.0 - dot[detection]) / radius2))
+                if len(detection) >= _SCATTER_PAIRS:  # (a sum over the count: np.mean's bits, less its overhead)
+                    variance = float(((1.0 - dot[detection]) / radius2).sum()) / len(detection)
                 claim2 = CLAIM_SIGMAS**2 * variance * (frame.radius2 if scalar else frame.radius2[:, None])
                 detection, star = sole_per_star(detection, star_of, (dots >= 1.0 - 0.5 * claim2).sum(axis=0))
                 ids[detection] = (self._label_hip[nearby.rows] if nearby.hip is None else nearby.hip)[star]

@@ -154,7 +154,7 @@ class StarRenderer:
         # Candidate stars: a cone around the boresight at mid-exposure wide enough for the motion during the frame.
         _, t_end_all = row_window(t_start, exposure, self.line_time_s, cam.height - 1)  # the last row closes
         sweep = trajectory.motion.max_rate(t_start, t_end_all) * (t_end_all - t_start)
-        boresight = cam.inertial_to_camera(trajectory.attitude(t_mid)).inv().apply([0.0, 0.0, 1.0])
+        boresight = cam.inertial_to_camera(trajectory.attitude(t_mid)).as_matrix()[2]  # camera +z in ICRS
         radius = min(math.pi, cam.half_diagonal + sweep + margin_px / min(cam.fx, cam.fy) + 1e-3)
         idx = self.catalog.cone(boresight, radius)
         units = self.catalog.unit[idx]
@@ -232,7 +232,7 @@ class StarRenderer:
             return self._spot_signal(paths, weight, spot)
         # Working memory per star: bands and fractions (~6 float64 per instant and band pixel) and ~4 float64
         # arrays the size of its window; consecutive stars are batched under BATCH_BYTES.
-        n_band = _band_table(float(self.psf_sigma_px)).shape[1]
+        n_band = _band_table(float(self.psf_sigma_px)).shape[0]
         extent = paths.max(axis=1) - paths.min(axis=1) + n_band + 16
         cost = 48.0 * paths.shape[1] * n_band + 32.0 * extent[:, 0] * extent[:, 1]
         batch = np.cumsum(cost) // BATCH_BYTES
@@ -324,11 +324,10 @@ def _patches_matmul(offset: np.ndarray, frac: np.ndarray, h: int, w: int) -> np.
     m, k, _, n_band = frac.shape
     wx = np.zeros((m, k, w))
     wy = np.zeros((m, k, h))
-    gi = np.arange(m)[:, None, None]
-    ki = np.arange(k)[None, :, None]
+    row = np.arange(m * k).reshape(m, k, 1)  # (star, instant) row of the flattened matrices
     cols_band = np.arange(n_band)
-    wx[gi, ki, offset[:, :, 0, None] + cols_band] = frac[:, :, 0]
-    wy[gi, ki, offset[:, :, 1, None] + cols_band] = frac[:, :, 1]
+    wx.reshape(-1)[(row * w + offset[:, :, 0, None] + cols_band).reshape(-1)] = frac[:, :, 0].reshape(-1)
+    wy.reshape(-1)[(row * h + offset[:, :, 1, None] + cols_band).reshape(-1)] = frac[:, :, 1].reshape(-1)
     return np.matmul(wy.transpose(0, 2, 1), wx)
 
 
@@ -417,15 +416,16 @@ def normal_cdf(z: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def _band_table(psf_sigma_px: float) -> np.ndarray:
-    """Fraction of a pixel-integrated Gaussian in each of the ``n_band`` pixels of an instant's band, tabulated
-    over the PSF centre's sub-pixel phase (``BAND_TABLE_STEPS`` steps, linear interpolation: error < 1e-8)."""
+    """Fraction of a pixel-integrated Gaussian in each of the ``n_band`` pixels of an instant's band (rows),
+    tabulated over the PSF centre's sub-pixel phase (columns: ``BAND_TABLE_STEPS`` steps, linear interpolation:
+    error < 1e-8)."""
     radius = PSF_RADIUS_SIGMA * psf_sigma_px
     n_band = math.ceil(2 * radius) + 2
     phase = np.linspace(0.0, 1.0, BAND_TABLE_STEPS + 1)
     edges = np.arange(n_band + 1) - 0.5  # pixel edges relative to the band start
     centre = radius + phase  # PSF centre relative to the band start
     cdf = erf((edges[None, :] - centre[:, None]) / (math.sqrt(2.0) * psf_sigma_px))
-    table = 0.5 * np.diff(cdf, axis=1)
+    table = np.ascontiguousarray(0.5 * np.diff(cdf, axis=1).T)
     table.flags.writeable = False
     return table
 
@@ -445,13 +445,20 @@ def band_fractions(points: np.ndarray, psf_sigma_px: float | np.ndarray) -> tupl
         edges -= points[..., None]
         edges /= sigma[..., None, None]
         return start.astype(np.int64), np.diff(normal_cdf(edges), axis=-1)
-    table = _band_table(float(psf_sigma_px))
+    table = _band_table(float(psf_sigma_px))  # (n_band, phases)
     radius = PSF_RADIUS_SIGMA * psf_sigma_px
     start = np.floor(points - radius)
-    pos = (points - start - radius) * (len(table) - 1)  # sub-pixel phase in table steps
-    i0 = np.minimum(pos.astype(np.int64), len(table) - 2)
-    w1 = (pos - i0)[..., None]
-    return start.astype(np.int64), table[i0] * (1.0 - w1) + table[i0 + 1] * w1
+    pos = (points - start - radius) * (table.shape[1] - 1)  # sub-pixel phase in table steps
+    i0 = np.minimum(pos.astype(np.int64), table.shape[1] - 2)
+    w1 = pos - i0
+    # table[:, i0] (1 - w1) + table[:, i0 + 1] w1, band pixels first so that every product runs over all points
+    frac = np.take(table, i0, axis=1)
+    frac *= 1.0 - w1
+    i0 += 1
+    above = np.take(table, i0, axis=1)
+    above *= w1
+    frac += above
+    return start.astype(np.int64), np.moveaxis(frac, 0, -1)
 
 
 def still_image(xy: np.ndarray, electrons: np.ndarray, shape: tuple[int, int], psf_sigma_px: float,

@@ -21,11 +21,15 @@ to 2024.0; tetra3rs's bundled positions stay close to Gaia's 2016.0 whatever epo
 fast stars would otherwise count as wrong).  A set is solved by starenv with >= 3 correct labels and none wrong; by a
 peer when its attitude puts the boresight within ``SOLVED_ARCSEC`` of the truth and its roll error moves the sensor's
 corners by no more than that.  Latency is the wall time of one call (median, 95th percentile), databases built or
-loaded before.  Tracking gets a prior 0.05 deg off the truth (random axis) on the sets with at least 30 stars, cut to
-their 30 brightest.
+loaded before.  starenv's and tetra3rs's lost-in-space calls take turns (cedar-solve, far slower, runs before them):
+starenv times ``--lockstep`` sets, then tetra3rs the same sets, and so on, so that both see the machine in the same
+state (the speed of a shared machine drifts within seconds).  The turn's length sets how warm the caches are: a
+star tracker identifies once a frame between other work, so each call starts colder than in a long run of calls;
+``--lockstep 2`` is close to that, ``--lockstep 50`` close to a run of calls.  Tracking gets a prior 0.05 deg off
+the truth (random axis) on the sets with at least 30 stars, cut to their 30 brightest.
 
     python benchmarks/identify_peers.py [--sets N] [--fov {12,20}] [--mag-limit MAG] [--seed S] [--repeats R]
-                                        [--noise PX] [--blend-px PX] [--json PATH]
+                                        [--noise PX] [--blend-px PX] [--lockstep N] [--json PATH]
 
 Each of the ``--repeats`` runs (default 3) draws its own sets, from seeds ``--seed``, ``--seed`` + 1, ... (default
 3400: no test draws from these), and times every method on them; the run prints each run's table and then every
@@ -70,7 +74,7 @@ PRIOR_ERROR_DEG = 0.05
 SEED = 3400  # default seed of the first repeat (no test draws from it)
 TRACK_STARS = 30
 CHECK_SETS = 10  # noise-free sets for the peers' convention check
-LOCKSTEP_SETS = 10  # starenv and tetra3rs take turns timing this many lost-in-space sets
+LOCKSTEP_SETS = 10  # default turn: starenv and tetra3rs take turns timing this many lost-in-space sets
 SOLVED_ARCSEC = 60.0
 ID_TOLERANCE_ARCSEC = 10.0
 PEER_EPOCHS = {"cedar": 2024.0, "tetra3rs": 2016.0}
@@ -134,9 +138,9 @@ def split(sets: dict, name: str) -> list[np.ndarray]:
 
 
 def timed_rows(identifier, camera: Camera, stars: list[StarMeasurements], hips: list[np.ndarray], priors,
-               after_chunk=None) -> list[list]:
+               after_chunk=None, chunk: int = LOCKSTEP_SETS) -> list[list]:
     """Per set [centroids, correct, wrong, solved, latency s] of ``identifier`` (one untimed call first);
-    ``after_chunk()``, if given, is called after every ``LOCKSTEP_SETS`` sets (untimed)."""
+    ``after_chunk()``, if given, is called after every ``chunk`` sets (untimed)."""
     identifier.identify([stars[0]], [camera], priors[0])
     rows = []
     for k, (s, hip, prior) in enumerate(zip(stars, hips, priors, strict=True)):
@@ -145,14 +149,14 @@ def timed_rows(identifier, camera: Camera, stars: list[StarMeasurements], hips: 
         latency = time.perf_counter() - start
         correct, wrong = int(np.sum(ids == hip)), int(np.sum((ids >= 0) & (ids != hip)))
         rows.append([len(s), correct, wrong, correct >= 3 and wrong == 0, latency])
-        if after_chunk is not None and (k + 1) % LOCKSTEP_SETS == 0:
+        if after_chunk is not None and (k + 1) % chunk == 0:
             after_chunk()
     return rows
 
 
-def run_starenv(camera: Camera, sets: dict, mag_limit: float) -> dict:
-    """starenv's lost-in-space rows on all sets, in lockstep with tetra3rs's (:func:`run_peers`), then its tracking
-    rows on the 30-star sets once the peers are done; the database build time; the peers' results (:class:`PeerRun`)."""
+def run_starenv(camera: Camera, sets: dict, mag_limit: float, chunk: int = LOCKSTEP_SETS) -> dict:
+    """starenv's lost-in-space rows on all sets, ``chunk`` sets at a time in turn with tetra3rs's (:class:`PeerRun`),
+    then its tracking rows on the 30-star sets once the peers are done; the database build time; the peers' results."""
     catalog = load_catalog(mag_limit, EPOCH)
     lis = LostInSpaceIdentifier()
     tracker = TrackingIdentifier(fallback=lis)
@@ -166,9 +170,9 @@ def run_starenv(camera: Camera, sets: dict, mag_limit: float) -> dict:
     track = sets["track"]
     n = sets["track_stars"]
     priors = [Rotation.from_matrix(sets["prior"][i]) for i in track]
-    with PeerRun(sets) as peers:
+    with PeerRun(sets, chunk) as peers:
         peers.ready()
-        lis_rows = timed_rows(lis, camera, stars, hips, [None] * len(stars), after_chunk=peers.chunk)
+        lis_rows = timed_rows(lis, camera, stars, hips, [None] * len(stars), after_chunk=peers.chunk, chunk=chunk)
         peer_results = peers.results()
     return {
         "build_s": build_s,
@@ -194,20 +198,23 @@ def peers_python() -> Path:
 class PeerRun:
     """The peers' run (see run_peers.py), a subprocess in their environment, in lockstep with starenv's timing:
     :meth:`ready` waits until the peers have built their databases and run everything but tetra3rs's lost-in-space
-    timing; then each :meth:`chunk` (called after starenv has timed ``LOCKSTEP_SETS`` sets) lets tetra3rs time the
-    same sets and waits for it, so that both see the machine in the same state; :meth:`results` gives the rows."""
+    timing; then each :meth:`chunk` (called after starenv has timed ``chunk`` sets) lets tetra3rs time the same
+    sets and waits for it, so that both see the machine in the same state; :meth:`results` gives the rows."""
 
-    def __init__(self, sets: dict):
+    def __init__(self, sets: dict, chunk: int = LOCKSTEP_SETS, runner: list[str] | None = None):
+        """``runner``: the command that runs the peers (default: run_peers.py in their environment); it gets the sets'
+        file, the result's file and ``--sync READ_FD WRITE_FD CHUNK``."""
         self._folder = tempfile.TemporaryDirectory()
         folder = Path(self._folder.name)
         np.savez(folder / "sets.npz", **sets)
         self._result = folder / "peers.json"
-        self._partial = len(sets["sizes"]) % LOCKSTEP_SETS > 0  # a last chunk of fewer sets
+        self._partial = len(sets["sizes"]) % chunk > 0  # a last chunk of fewer sets
         to_peer, self._go = os.pipe()
         self._done, from_peer = os.pipe()
+        runner = [str(peers_python()), str(RUNNER)] if runner is None else runner
         self._process = subprocess.Popen(
-            [str(peers_python()), str(RUNNER), str(folder / "sets.npz"), str(self._result), "--sync",
-             str(to_peer), str(from_peer), str(LOCKSTEP_SETS)], pass_fds=(to_peer, from_peer))
+            [*runner, str(folder / "sets.npz"), str(self._result), "--sync", str(to_peer), str(from_peer), str(chunk)],
+            pass_fds=(to_peer, from_peer))
         os.close(to_peer)
         os.close(from_peer)
         self._to, self._from = os.fdopen(self._go, "wb", buffering=0), os.fdopen(self._done, "rb", buffering=0)
@@ -263,6 +270,8 @@ def main() -> None:
     parser.add_argument("--noise", type=float, default=NOISE_PX, help="centroid noise per axis (px)")
     parser.add_argument("--blend-px", type=float, default=BLEND_PX,
                         help="drop a star within this of a brighter one (0: keep every star)")
+    parser.add_argument("--lockstep", type=int, default=LOCKSTEP_SETS,
+                        help="lost-in-space sets starenv and tetra3rs each time in turn")
     parser.add_argument("--json", type=Path, default=None, help="also write the tables here")
     args = parser.parse_args()
     print(f"load average {os.getloadavg()[0]:.2f} (1 min) on {os.cpu_count()} cores")
@@ -289,7 +298,7 @@ def compare(args: argparse.Namespace, seed: int) -> dict:
           f"{args.noise} px noise: "
           f"{np.median(sizes):.0f} stars a set (5-95%: {np.percentile(sizes, 5):.0f}-{np.percentile(sizes, 95):.0f}); "
           f"tracking on {len(sets['track'])} sets cut to {TRACK_STARS} stars")
-    ours = run_starenv(camera, sets, mag_limit)
+    ours = run_starenv(camera, sets, mag_limit, args.lockstep)
     peers = ours["peers"]
     databases = {"starenv": f"{ours['database']}, built (cold) in {ours['build_s']:.2f} s"}
     for name, peer in peers.items():
@@ -323,6 +332,7 @@ def compare(args: argparse.Namespace, seed: int) -> dict:
     print(f"median LIS latency / tetra3rs's:        {goals['latency_vs_tetra3rs']:7.2f}     (goal <= 1)")
     print(f"median tracking latency, {TRACK_STARS} stars:     {goals['tracking_median_ms']:7.3f} ms  (goal <= 1 ms)")
     settings = {"sets": args.sets, "fov_deg": float(sets["fov_deg"]), "mag_limit": mag_limit, "seed": seed,
+                "lockstep": args.lockstep,
                 "noise_px": args.noise, "blend_px": args.blend_px, "tracking_sets": len(sets["track"])}
     return {"settings": settings, "databases": databases, "table": table, "goals": goals}
 

@@ -6,7 +6,9 @@ shared memory (Gymnasium's default), pickled, and through shared memory with eac
 lean (no infos, observations as views of the shared memory); "bare workers", the floor of any process-based vector
 env's overhead (a byte to step, the frames written straight into shared memory, a byte back and nothing else); one
 env driven by the scenario's own pipeline, with and without prefetch (the next frame simulated on a thread while the
-pipeline works); then a cProfile of single-env steps.
+pipeline works); then a cProfile of single-env steps.  ``--parts breakdown`` times the parts of the 1024 x 1024 step
+below (the read-out, the render, scoring, the gyro, the observation, the action's parsing) by wrapping each one's
+function, each part's time over the floor draw's.
 
 Then ``env.step`` on a 1024 x 1024 frame (paper 002's optics, stars to magnitude 7, ~40 on a frame; 50 ms exposure,
 ~30 px trails; noise on; the true attitude of the last frame sent as the action, so the step scores it): everything a
@@ -270,7 +272,62 @@ def profile(steps: int, seed: int) -> str:
     return "\n".join(line for line in text.getvalue().splitlines() if line.strip() and "Ordered by" not in line)
 
 
-PARTS = ("step", "single", "vector", "pipeline", "profile")
+# The parts of a 1024 x 1024 step that ``--parts breakdown`` times: (module, function or Class.method, label).
+BREAKDOWN = (("starenv.sim.imager", "Detector.read_out", "read-out"), ("starenv.sim.render", "StarRenderer.render",
+             "render"), ("starenv.env", "score_step", "scoring"), ("starenv.sim.gyro", "Gyro.sample_until", "gyro"),
+             ("starenv.env", "StarSensorEnv._observation", "observation"), ("starenv.env", "parse_action",
+             "action parsing"))
+
+
+def breakdown(steps: int, seed: int) -> dict[str, float]:
+    """Each part of :data:`BREAKDOWN` of ``steps`` steps of the 1024 x 1024 env (:func:`frame_env` at ``seed``), its
+    total time over the total of one floor draw timed beside each step; every part's function wrapped by a timer."""
+    import importlib
+    from unittest import mock
+
+    spent = dict.fromkeys([label for *_, label in BREAKDOWN], 0.0)
+
+    def timed(function, label):
+        def wrapper(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                spent[label] += time.perf_counter() - start
+        return wrapper
+
+    patches = []
+    for module, name, label in BREAKDOWN:
+        owner = importlib.import_module(module)
+        *outer, attribute = name.split(".")
+        for part in outer:
+            owner = getattr(owner, part)
+        patches.append(mock.patch.object(owner, attribute, timed(getattr(owner, attribute), label)))
+    for patch in patches:
+        patch.start()
+    try:
+        env = frame_env(seed, steps)
+        action = env.unwrapped.null_action()
+        action["attitude_valid"] = np.array(1, np.int8)
+        _, info = env.reset(seed=seed)
+        info = _scored_step(env, action, info)
+        rng = np.random.default_rng(seed)
+        noise = np.empty(env.observation_space["frames"].shape[1:], np.float32)
+        spent = dict.fromkeys(spent, 0.0)
+        floor = 0.0
+        for _ in range(steps):
+            t0 = time.perf_counter()
+            rng.standard_normal(dtype=np.float32, out=noise)
+            floor += time.perf_counter() - t0
+            info = _scored_step(env, action, info)
+        env.close()
+    finally:
+        for patch in patches:
+            patch.stop()
+    return {label: total / floor for label, total in spent.items()}
+
+
+PARTS = ("step", "single", "vector", "pipeline", "profile", "breakdown")
 
 
 def spread(values: list[float]) -> str:
@@ -314,6 +371,8 @@ def main() -> None:
                 "lean": lean_vector(args.steps, 2, infos=True, copy=True, seed=seed),
                 "lean views": lean_vector(args.steps, 2, infos=False, copy=False, seed=seed),
             }
+        if "breakdown" in parts:
+            found |= {f"part {label}": value for label, value in breakdown(args.steps, seed + k).items()}
         if "pipeline" in parts:
             found |= {"pipeline": with_pipeline(args.steps // 3, False, seed),
                       "pipeline prefetch": with_pipeline(args.steps // 3, True, seed)}
@@ -326,6 +385,9 @@ def main() -> None:
         print(f"env.step, 1024x1024, {stars} stars (a pointing a round), noise on, scored: {spread(steps_ms)} ms = "
               f"{spread([r['frame step'] / r['frame floor'] for r in rounds])} x the floor "
               f"({spread([r['frame floor'] * 1e3 for r in rounds])} ms; goal <= 1.5)")
+    if "breakdown" in parts:
+        print("env.step, 1024x1024, each part's time in floor draws: " + "; ".join(
+            f"{label} {spread([r[f'part {label}'] for r in rounds])}" for *_, label in BREAKDOWN))
     if not parts & {"single", "vector", "pipeline"}:
         rounds = []
     if rounds:

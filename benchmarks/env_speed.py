@@ -230,17 +230,25 @@ def _scored_step(env: gym.Env, action: dict, info: dict) -> dict:
     return env.step(action)[4]
 
 
-def frame_step(steps: int, seed: int) -> tuple[float, float, int]:
-    """Median time (s) of a 1024 x 1024 ``env.step`` and of one floor draw of its frame, each step timed beside one
-    draw; the stars on the first frame."""
-    env = frame_env(seed, steps)
+def _stepped_frame_env(seed: int, steps: int) -> tuple[gym.Env, dict, dict, int]:
+    """:func:`frame_env` reset and stepped once (untimed): the env, the action it is stepped with, the last info and
+    the stars on the first frame."""
+    env = frame_env(seed, steps + 1)
     action = env.unwrapped.null_action()
     action["attitude_valid"] = np.array(1, np.int8)
     _, info = env.reset(seed=seed)
     stars = len(info["truth"]["stars"][0]["catalog_id"])
+    return env, action, _scored_step(env, action, info), stars
+
+
+def frame_step(steps: int, seed: int, warmed=None) -> tuple[float, float, int]:
+    """Median time (s) of a 1024 x 1024 ``env.step`` and of one floor draw of its frame, each step timed beside one
+    draw (after one untimed step; then ``warmed()``, if given); the stars on the first frame."""
+    env, action, info, stars = _stepped_frame_env(seed, steps)
+    if warmed is not None:
+        warmed()
     rng = np.random.default_rng(seed)
     noise = np.empty(env.observation_space["frames"].shape[1:], np.float32)
-    info = _scored_step(env, action, info)
     step_times, floor_times = [], []
     for _ in range(steps):
         t0 = time.perf_counter()
@@ -255,11 +263,7 @@ def frame_step(steps: int, seed: int) -> tuple[float, float, int]:
 
 def profile(steps: int, seed: int) -> str:
     """The top of a cProfile of ``steps`` steps of the 1024 x 1024 env, by cumulative and by own time."""
-    env = frame_env(seed, steps + 1)
-    action = env.unwrapped.null_action()
-    action["attitude_valid"] = np.array(1, np.int8)
-    _, info = env.reset(seed=seed)
-    info = _scored_step(env, action, info)
+    env, action, info, _ = _stepped_frame_env(seed, steps)
     profiler = cProfile.Profile()
     profiler.enable()
     for _ in range(steps):
@@ -280,8 +284,9 @@ BREAKDOWN = (("starenv.sim.imager", "Detector.read_out", "read-out"), ("starenv.
 
 
 def breakdown(steps: int, seed: int) -> dict[str, float]:
-    """Each part of :data:`BREAKDOWN` of ``steps`` steps of the 1024 x 1024 env (:func:`frame_env` at ``seed``), its
-    total time over the total of one floor draw timed beside each step; every part's function wrapped by a timer."""
+    """Each part of :data:`BREAKDOWN` of :func:`frame_step`'s ``steps`` timed steps, its mean time a step over the
+    median floor draw; every part's function wrapped by a timer (the reset and the untimed first step left out)."""
+    import contextlib
     import importlib
     from unittest import mock
 
@@ -296,35 +301,15 @@ def breakdown(steps: int, seed: int) -> dict[str, float]:
                 spent[label] += time.perf_counter() - start
         return wrapper
 
-    patches = []
-    for module, name, label in BREAKDOWN:
-        owner = importlib.import_module(module)
-        *outer, attribute = name.split(".")
-        for part in outer:
-            owner = getattr(owner, part)
-        patches.append(mock.patch.object(owner, attribute, timed(getattr(owner, attribute), label)))
-    for patch in patches:
-        patch.start()
-    try:
-        env = frame_env(seed, steps)
-        action = env.unwrapped.null_action()
-        action["attitude_valid"] = np.array(1, np.int8)
-        _, info = env.reset(seed=seed)
-        info = _scored_step(env, action, info)
-        rng = np.random.default_rng(seed)
-        noise = np.empty(env.observation_space["frames"].shape[1:], np.float32)
-        spent = dict.fromkeys(spent, 0.0)
-        floor = 0.0
-        for _ in range(steps):
-            t0 = time.perf_counter()
-            rng.standard_normal(dtype=np.float32, out=noise)
-            floor += time.perf_counter() - t0
-            info = _scored_step(env, action, info)
-        env.close()
-    finally:
-        for patch in patches:
-            patch.stop()
-    return {label: total / floor for label, total in spent.items()}
+    with contextlib.ExitStack() as stack:
+        for module, name, label in BREAKDOWN:
+            owner = importlib.import_module(module)
+            *outer, attribute = name.split(".")
+            for part in outer:
+                owner = getattr(owner, part)
+            stack.enter_context(mock.patch.object(owner, attribute, timed(getattr(owner, attribute), label)))
+        _, floor_s, _ = frame_step(steps, seed, warmed=lambda: spent.update(dict.fromkeys(spent, 0.0)))
+    return {label: total / steps / floor_s for label, total in spent.items()}
 
 
 PARTS = ("step", "single", "vector", "pipeline", "profile", "breakdown")

@@ -28,7 +28,7 @@ FAKE_PEER = textwrap.dedent(f"""
     lockstep.ready()
     stamps = []
     for k in range(count):
-        lockstep.before(k, count)
+        lockstep.before(k)
         stamps.append(time.monotonic_ns())
         time.sleep(0.0005)
     lockstep.end(count)

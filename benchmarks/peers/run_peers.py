@@ -110,7 +110,7 @@ class Sets:
         out = []
         for k, (i, prior) in enumerate(zip(indices, priors, strict=True)):
             if lockstep is not None:
-                lockstep.before(k, len(indices))
+                lockstep.before(k)
             xy = self.xy[i][cut]
             start = time.perf_counter()
             result = solve(xy, self.flux[i][cut], *prior)
@@ -136,8 +136,8 @@ class Lockstep:
     def ready(self) -> None:
         self.write.write(b"d")
 
-    def before(self, k: int, count: int) -> None:
-        """Before set ``k`` of ``count``: at a chunk's end say so, at a chunk's start wait for the go."""
+    def before(self, k: int) -> None:
+        """Before set ``k``: at a chunk's end say so, at a chunk's start wait for the go."""
         if k and k % self.chunk == 0:
             self.write.write(b"d")
         if k % self.chunk == 0 and self.read.read(1) != b"g":

@@ -93,6 +93,7 @@ from starenv.agents.identify.geometry import (
     STAR_ORDERS,
     chord,
     closest_per_star,
+    mask_pairs,
     resolvable,
     same_matches,
     sole_per_star,
@@ -131,12 +132,6 @@ def _breadth_first_quads(count: int) -> list[np.ndarray]:
         others = np.array(list(itertools.combinations(range(last), 3)), dtype=np.intp)
         steps.append(np.column_stack([others, np.full(len(others), last)]))
     return steps
-
-
-def _pairs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``mask.nonzero()`` of a 2-d mask (rows and columns of its true entries, row-major), from the flat indices:
-    numpy's 2-d nonzero costs several times more on small arrays."""
-    return np.divmod(mask.ravel().nonzero()[0], mask.shape[1])
 
 
 def _pinhole_rays(cam: Camera) -> np.ndarray:
@@ -354,12 +349,12 @@ class LostInSpaceIdentifier:
                     if scalar:  # mean squared residual (chord^2 = 2 - 2 dot), in match radii squared, per axis
                         variance = (1.0 - float(np.vdot(dots, within)) / count) / frame.radius2
                     else:
-                        detection, star = _pairs(within)
+                        detection, star = mask_pairs(within)
                         variance = float(((1.0 - dots[detection, star]) / frame.radius2[detection]).mean())
                     widen2 = min(_LABEL_SIGMAS**2 * variance, _LABEL_MAX**2)  # (in match radii)
                     if widen2 > 1.0:
                         within = dots >= 1.0 - (0.5 * widen2) * (frame.radius2 if scalar else frame.radius2[:, None])
-                detection, star = _pairs(within)
+                detection, star = mask_pairs(within)
                 detections = detection.tolist()
                 if len(set(detections)) < len(detections):  # some with two or more: left out
                     alone = np.bincount(detection, minlength=len(ids))[detection] == 1
@@ -528,7 +523,7 @@ class LostInSpaceIdentifier:
         bounds = np.floor((ratios + _SIGNS * ((ratios + 1.0) * (tolerance / largest))) * bins)  # bins of ratio -+ tol
         low = np.maximum(bounds[0], 0.0)
         probed = _PROBES[(np.minimum(bounds[1], bins - 1.0) > low) @ _BITS]  # (q, 32) bin steps probed
-        owner, step = _pairs(probed & (ordered[:, :1] >= settings.blend_rad))
+        owner, step = mask_pairs(probed & (ordered[:, :1] >= settings.blend_rad))
         first, end = db.keys.searchsorted((low.astype(np.int64) @ self._digits)[owner] + self._probe_keys[:, step])
         count = end - first
         total = count.sum()

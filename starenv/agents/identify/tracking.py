@@ -56,6 +56,8 @@ A star closer than ``MERGE_PX`` pixels to a brighter one is taken as part of it 
 from __future__ import annotations
 
 import math
+import operator
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -69,6 +71,7 @@ from starenv.agents.identify.geometry import (
     MERGE_PX,
     body_vectors,
     closest_per_star,
+    mask_pairs,
     resolvable,
     same_matches,
     sole_per_star,
@@ -117,6 +120,7 @@ class TrackingIdentifier:
         self.max_false = checks.in_range("max_false", max_false, 0.0, 1.0, low_open=True)
         self.min_matches = checks.integer("min_matches", min_matches, 3, 1000)
         self.catalog: StarCatalog | None = None
+        self._last_views: _Views | None = None
 
     def reset(self, cameras: list[Camera], catalog: StarCatalog) -> None:
         """Index the catalogue's resolvable stars for these heads and reset the fallback."""
@@ -127,6 +131,7 @@ class TrackingIdentifier:
         self._unit, self._hip = catalog.unit[rows], catalog.hip[rows]
         self._tree = cKDTree(self._unit)
         self.catalog = catalog
+        self._last_views = None
         self.fallback.reset(cameras, catalog)
 
     def identify(self, stars: list[StarMeasurements], cameras: list[Camera], prior: Rotation | None,
@@ -148,16 +153,17 @@ class TrackingIdentifier:
         """Pooled ids (-1 none) of the detections ``body`` (n, 3) of heads ``heads`` tracked from ``prior`` (3, 3,
         inertial -> body), or None when the verification rejects them."""
         n = len(body)
-        pixel = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])  # rad/px per head
+        views = self._views(cameras)
+        pixel = views.pixel  # rad/px per head
         pix = pixel[heads]
-        stars, density = self._in_view(cameras, prior, pixel)
+        stars, density = self._in_view(views, prior)
         unit = self._unit[stars]
         radius2 = (self.refine_gate_px * pix) ** 2
         radii = radius2, pix**2, self.centroid_noise_px**2
         p = float(np.max(chance_match(density[heads], np.sqrt(radius2))))
         # Two attempts, each verified at half of max_false: together they accept a wrong attitude with a probability
         # below max_false.
-        voted = self._vote(body, pix, unit, prior)
+        voted = self._vote(body, pixel, pix, unit, prior)
         if voted is not None:
             pairs = self._settle(body, unit, self._pair(body, unit, wahba_svd(*voted[0]), radii), radii)
             if pairs is not None and self._verified(n, len(pairs[0]), p, 2, 2 * voted[1]):
@@ -172,35 +178,41 @@ class TrackingIdentifier:
                 return self._ids(n, stars, pairs)
         return None
 
-    def _vote(self, body: np.ndarray, pix: np.ndarray, unit: np.ndarray,
+    def _vote(self, body: np.ndarray, pixel: np.ndarray, pix: np.ndarray, unit: np.ndarray,
               prior: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], int] | None:
         """Steps 1-3: the core's (body, inertial) unit vectors and the number of agreeing candidate pairs (the
-        hypotheses), or None when too few candidates agree."""
-        n = len(body)
-        # 1. Candidates within the gate of the predicted stars.
+        hypotheses), or None when too few candidates agree; ``pixel`` is each head's plate scale, ``pix`` each
+        detection's (rad/px)."""
+        # 1. Candidates within the gate of the predicted stars (det ascending: each detection's candidates in a run).
         squared = 2.0 - 2.0 * (body @ prior @ unit.T)
-        det, star = np.nonzero(squared <= (self.gate_px * pix)[:, None] ** 2)
-        offset = squared[det, star]
+        det, star = mask_pairs(squared <= (self.gate_px * pix)[:, None] ** 2)
         if len(det) < self.min_matches:
             return None
+        offset = squared[det, star]
         # 2. Agreement of candidate pairs' chords, and votes.
-        pair = np.ix_(det, det)
-        tolerance = (_SIGMAS * math.sqrt(2.0) * self.centroid_noise_px) * np.maximum(pix[:, None], pix[None, :])[pair]
-        detection_chord = np.sqrt(np.maximum(2.0 - 2.0 * (body @ body.T), 0.0))[pair]
+        tolerance = (_SIGMAS * math.sqrt(2.0) * self.centroid_noise_px) * (
+            pixel[0] if len(pixel) == 1 else np.maximum.outer(pix[det], pix[det])
+        )
+        detections = body[det]
+        detection_chord = np.sqrt(np.maximum(2.0 - 2.0 * (detections @ detections.T), 0.0))
         candidates = unit[star]
         star_chord = np.sqrt(np.maximum(2.0 - 2.0 * (candidates @ candidates.T), 0.0))
         agree = np.abs(detection_chord - star_chord) <= tolerance
-        agree &= (det[:, None] != det[None, :]) & (star[:, None] != star[None, :])
-        votes = (agree @ (det[:, None] == np.arange(n))).sum(axis=1)  # detections with an agreeing candidate
+        agree &= (det[:, None] != det) & (star[:, None] != star)
+        runs = np.flatnonzero(det[1:] != det[:-1]) + 1  # where each detection's run of candidates starts (not 0)
+        if len(runs) == len(det) - 1:  # one candidate a detection: a vote a candidate
+            votes = agree.sum(axis=1)
+        else:  # detections with an agreeing candidate
+            votes = np.logical_or.reduceat(agree, np.concatenate(([0], runs)), axis=1).sum(axis=1)
         # 3. One candidate a detection and a star, most votes first (then nearest its prediction); the core agrees
         # with at least half as many kept ones as the best.
         kept = _first_of_each(det, np.lexsort((offset, -votes, det)))
         kept = kept[_first_of_each(star[kept], np.lexsort((offset[kept], -votes[kept], star[kept])))]
-        support = agree[np.ix_(kept, kept)].sum(axis=1)
+        support = agree[kept][:, kept].sum(axis=1)
         core = kept[support >= max(2.0, support.max() / 2.0)]
         if len(core) < self.min_matches:
             return None
-        return (body[det[core]], unit[star[core]]), max(int(agree.sum()) // 2, 1)
+        return (body[det[core]], unit[star[core]]), max(np.count_nonzero(agree) // 2, 1)
 
     def _settle(self, body: np.ndarray, unit: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
                 radii: tuple) -> tuple[np.ndarray, np.ndarray] | None:
@@ -226,15 +238,32 @@ class TrackingIdentifier:
         ids[pairs[0]] = self._hip[stars[pairs[1]]]
         return ids
 
-    def _in_view(self, cameras: list[Camera], attitude: np.ndarray, pixel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _views(self, cameras: list[Camera]) -> _Views:
+        """The per-head constants of ``cameras`` (kept for the last list of cameras seen; cameras are frozen)."""
+        views = self._last_views
+        if views is None or len(views.cameras) != len(cameras) or not all(map(operator.is_, views.cameras, cameras)):
+            pixel = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])
+            reach = np.array([
+                min(cam.half_diagonal + self.gate_px * scale, math.pi)
+                for cam, scale in zip(cameras, pixel.tolist(), strict=True)
+            ])
+            self._last_views = views = _Views(
+                cameras=tuple(cameras),
+                pixel=pixel,
+                axes=np.stack([cam.mounting.as_matrix()[2] for cam in cameras]),
+                chords=2.0 * np.sin(reach / 2.0),
+                solid_angle=2.0 * math.pi * (1.0 - np.cos(reach)),
+            )
+        return views
+
+    def _in_view(self, views: _Views, attitude: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rows (of the resolvable stars) within each head's half diagonal plus the gate of its boresight under
         ``attitude`` (3, 3), inertial -> body, and per head the density of those stars in its cone (per sr)."""
-        boresights = np.stack([cam.mounting.as_matrix()[2] @ attitude for cam in cameras])
-        reach = np.array([min(cam.half_diagonal + self.gate_px * pixel[h], math.pi) for h, cam in enumerate(cameras)])
-        found = self._tree.query_ball_point(boresights, 2.0 * np.sin(reach / 2.0))
-        density = np.array([len(f) for f in found]) / (2.0 * math.pi * (1.0 - np.cos(reach)))
-        if len(found) == 1:
-            return np.asarray(found[0], dtype=np.intp), density
+        if len(views.cameras) == 1:
+            found = self._tree.query_ball_point(views.axes[0] @ attitude, views.chords[0], return_sorted=True)
+            return np.asarray(found, dtype=np.intp), np.array([len(found)]) / views.solid_angle
+        found = self._tree.query_ball_point(views.axes @ attitude, views.chords)
+        density = np.array([len(f) for f in found]) / views.solid_angle
         return np.unique(np.concatenate([np.asarray(f, dtype=np.intp) for f in found])), density
 
     @staticmethod
@@ -255,9 +284,20 @@ class TrackingIdentifier:
         closest = squared[np.arange(len(body)), nearest]
         first = closest_per_star(alone, nearest, closest)[0]  # (each star's closest detection)
         if len(first) >= _SCATTER_PAIRS:  # the centroid variance per axis (px^2) measured on those pairs
-            variance = 0.5 * float(np.mean(closest[first] / pixel2[first]))
+            variance = 0.5 * (float((closest[first] / pixel2[first]).sum()) / len(first))  # (np.mean's bits)
         near = (squared <= (CLAIM_SIGMAS**2 * variance * pixel2)[:, None]).sum(axis=0)
         return sole_per_star(first, nearest, near)
+
+
+class _Views(NamedTuple):
+    """Per-head constants of a list of cameras: the cameras, their plate scales (rad/px), body-frame boresights
+    (h, 3), and the chords (rad) and solid angles (sr) of the cones about them that hold the stars tracked."""
+
+    cameras: tuple
+    pixel: np.ndarray
+    axes: np.ndarray
+    chords: np.ndarray
+    solid_angle: np.ndarray
 
 
 def _first_of_each(group: np.ndarray, order: np.ndarray) -> np.ndarray:

@@ -13,14 +13,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import Identifier, StarMeasurements
 from starenv.agents.identify.database import build_patterns, pattern_keys
-from starenv.agents.identify.geometry import CLAIM_SIGMAS, pattern_edges, sole_per_star
+from starenv.agents.identify.geometry import CLAIM_SIGMAS, mask_pairs, pattern_edges, sole_per_star
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
-from starenv.agents.identify.tracking import TrackingIdentifier
+from starenv.agents.identify.tracking import TrackingIdentifier, _votes
 from starenv.agents.identify.verify import chance_match, false_match_probability
 from starenv.sim.conventions import DEG
 from starenv.sim.optics import BrownConrady, Camera
@@ -646,6 +648,26 @@ def test_sole_per_star_drops_every_row_of_a_star_with_two_detections_near_it():
     assert rows.tolist() == [0] and stars.tolist() == [0]
     rows, stars = sole_per_star(np.array([0, 2]), np.array([4, 8, 6, 0, 0, 0, 0, 0, 0]), np.ones(9, dtype=int))
     assert rows.tolist() == [0, 2] and stars.tolist() == [4, 6]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 12), st.integers(1, 30), st.floats(0.0, 1.0))
+def test_tracking_votes_count_the_detections_with_an_agreeing_candidate(seed, detections, candidates, density):
+    # The vote of a candidate is the number of distinct detections holding a candidate that agrees with it, counted
+    # here candidate by candidate: a count of agreeing candidates instead differs when a detection has two.
+    rng = np.random.default_rng(seed)
+    det = np.sort(rng.integers(0, detections, candidates))
+    agree = rng.random((candidates, candidates)) < density
+    expected = [len({det[j] for j in range(candidates) if agree[i, j]}) for i in range(candidates)]
+    assert _votes(agree, det).tolist() == expected
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 9), st.integers(1, 9), st.floats(0.0, 1.0))
+def test_mask_pairs_is_nonzero(seed, rows, columns, density):
+    mask = np.random.default_rng(seed).random((rows, columns)) < density
+    row, column = mask_pairs(mask)
+    assert row.tolist() == mask.nonzero()[0].tolist() and column.tolist() == mask.nonzero()[1].tolist()
 
 
 @pytest.mark.parametrize("name, camera", [("narrow", NARROW), ("wide", WIDE)])

@@ -199,11 +199,7 @@ class TrackingIdentifier:
         star_chord = np.sqrt(np.maximum(2.0 - 2.0 * (candidates @ candidates.T), 0.0))
         agree = np.abs(detection_chord - star_chord) <= tolerance
         agree &= (det[:, None] != det) & (star[:, None] != star)
-        runs = np.flatnonzero(det[1:] != det[:-1]) + 1  # where each detection's run of candidates starts (not 0)
-        if len(runs) == len(det) - 1:  # one candidate a detection: a vote a candidate
-            votes = agree.sum(axis=1)
-        else:  # detections with an agreeing candidate
-            votes = np.logical_or.reduceat(agree, np.concatenate(([0], runs)), axis=1).sum(axis=1)
+        votes = _votes(agree, det)
         # 3. One candidate a detection and a star, most votes first (then nearest its prediction); the core agrees
         # with at least half as many kept ones as the best.
         kept = _first_of_each(det, np.lexsort((offset, -votes, det)))
@@ -298,6 +294,15 @@ class _Views(NamedTuple):
     axes: np.ndarray
     chords: np.ndarray
     solid_angle: np.ndarray
+
+
+def _votes(agree: np.ndarray, det: np.ndarray) -> np.ndarray:
+    """Per candidate, the detections holding a candidate that agrees with it: ``agree`` (c, c) of candidates whose
+    detections ``det`` (c,) ascend (each detection's candidates in a run)."""
+    runs = np.flatnonzero(det[1:] != det[:-1]) + 1  # where each run starts, less the first
+    if len(runs) == len(det) - 1:  # one candidate a detection: a vote a candidate
+        return agree.sum(axis=1)
+    return np.logical_or.reduceat(agree, np.concatenate(([0], runs)), axis=1).sum(axis=1)
 
 
 def _first_of_each(group: np.ndarray, order: np.ndarray) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""Instructions per call of the hot paths (valgrind's callgrind): lost in space on centroid sets, the star render of
-the ``env.step`` benchmark's frames, the detector on paper 002's frames.
+"""Instructions per call of the hot paths (valgrind's callgrind): lost in space and tracking on centroid sets, the
+star render of the ``env.step`` benchmark's frames, the detector on paper 002's frames.
 
 A count repeats exactly from run to run on one machine (same code, inputs and libraries), whatever else the machine
 is doing, where a timing on a shared machine drifts by tens of percent within seconds: it is how two versions of the
@@ -17,7 +17,7 @@ Workloads (inputs drawn from ``--seed``, default 8800: no test draws from it):
 
 Each workload is built and run once untimed, then counted over its ``--count`` calls.
 
-    python benchmarks/instruction_counts.py [--workloads lis,render,detect] [--count N] [--seed S] [--fov F]
+    python benchmarks/instruction_counts.py [--workloads lis,track,render,detect] [--count N] [--seed S] [--fov F]
                                             [--noise PX]
 """
 
@@ -32,26 +32,37 @@ import sys
 import tempfile
 from pathlib import Path
 
-WORKLOADS = ("lis", "render", "detect")
+WORKLOADS = ("lis", "track", "render", "detect")
+TRACK_PRIOR_DEG = 0.5  # track: the prior's error, within the tracking gate's reach at 12 and 20 deg
 
 
 def _workload(name: str, count: int, seed: int, fov: int, noise: float):
     """The calls of workload ``name``: a function of no argument per call."""
     import numpy as np
 
-    if name == "lis":
-        from identify_peers import EPOCH, MAG_LIMIT, make_camera, make_sets, split  # run from benchmarks/
+    if name in ("lis", "track"):
+        from identify_peers import EPOCH, MAG_LIMIT, TRACK_STARS, make_camera, make_sets, split  # from benchmarks/
+        from scipy.spatial.transform import Rotation
 
         from starenv.agents.base import StarMeasurements
-        from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
+        from starenv.agents.identify import LostInSpaceIdentifier, TrackingIdentifier
+        from starenv.sim.conventions import DEG
         from starenv.sim.sky import load_catalog
 
         camera = make_camera(fov)
-        sets = make_sets(camera, MAG_LIMIT[fov], count, np.random.default_rng(seed), noise)
-        identifier = LostInSpaceIdentifier()
+        rng = np.random.default_rng(seed)
+        sets = make_sets(camera, MAG_LIMIT[fov], count, rng, noise)
+        identifier = LostInSpaceIdentifier() if name == "lis" else TrackingIdentifier()
         identifier.reset([camera], load_catalog(MAG_LIMIT[fov], EPOCH))
         stars = [StarMeasurements(xy, f) for xy, f in zip(split(sets, "xy"), split(sets, "flux"), strict=True)]
-        return [lambda s=s: identifier.identify([s], [camera]) for s in stars]
+        if name == "lis":
+            return [lambda s=s: identifier.identify([s], [camera]) for s in stars]
+        axes = rng.normal(size=(count, 3))
+        priors = Rotation.from_rotvec(axes / np.linalg.norm(axes, axis=1, keepdims=True) * (TRACK_PRIOR_DEG * DEG))
+        priors = priors * Rotation.from_matrix(sets["attitude"])
+        cut = [(StarMeasurements(stars[k].xy[:TRACK_STARS], stars[k].flux[:TRACK_STARS]), priors[k])
+               for k in sets["track"]]
+        return [lambda s=s, p=p: identifier.identify([s], [camera], p) for s, p in cut]
     if name == "render":
         from env_speed import frame_env
 
@@ -83,10 +94,11 @@ def child(args: argparse.Namespace) -> None:
     for call in calls:
         call()
     subprocess.run([*control, "off", str(os.getpid())], check=True, capture_output=True)
+    print(f"calls {len(calls)}")
 
 
 def count(name: str, args: argparse.Namespace) -> int:
-    """Instructions of workload ``name``'s ``--count`` calls, from a run of this script under callgrind."""
+    """Instructions of workload ``name``'s calls and their number, from a run of this script under callgrind."""
     with tempfile.TemporaryDirectory() as folder:
         command = ["valgrind", "--tool=callgrind", "--instr-atstart=no",
                    f"--callgrind-out-file={Path(folder) / 'callgrind.out'}", sys.executable, __file__, "--child", name,
@@ -95,9 +107,10 @@ def count(name: str, args: argparse.Namespace) -> int:
         env = os.environ | {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
         run = subprocess.run(command, capture_output=True, text=True, env=env)
     found = re.search(r"Collected\s*:\s*(\d+)", run.stderr)
-    if run.returncode != 0 or found is None:
+    calls = re.search(r"^calls (\d+)$", run.stdout, re.MULTILINE)
+    if run.returncode != 0 or found is None or calls is None:
         raise RuntimeError(f"callgrind run of {name} failed (exit {run.returncode}):\n{run.stderr[-2000:]}")
-    return int(found.group(1))
+    return int(found.group(1)), int(calls.group(1))
 
 
 def main() -> None:
@@ -105,8 +118,8 @@ def main() -> None:
     parser.add_argument("--workloads", default=",".join(WORKLOADS), help=f"comma-separated, of {', '.join(WORKLOADS)}")
     parser.add_argument("--count", type=int, default=40, help="calls counted per workload")
     parser.add_argument("--seed", type=int, default=8800)
-    parser.add_argument("--fov", type=int, choices=(12, 20), default=12, help="lis: the field (deg)")
-    parser.add_argument("--noise", type=float, default=1.0, help="lis: centroid noise per axis (px)")
+    parser.add_argument("--fov", type=int, choices=(12, 20), default=12, help="lis, track: the field (deg)")
+    parser.add_argument("--noise", type=float, default=1.0, help="lis, track: centroid noise per axis (px)")
     parser.add_argument("--child", choices=WORKLOADS, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -118,10 +131,11 @@ def main() -> None:
     missing = [tool for tool in ("valgrind", "callgrind_control") if shutil.which(tool) is None]
     if missing:
         sys.exit(f"{' and '.join(missing)} not found: install valgrind (Debian: apt install valgrind)")
-    print(f"seed {args.seed}, {args.count} calls a workload (lis: {args.fov} deg, {args.noise} px)")
+    print(f"seed {args.seed}, {args.count} calls a workload (lis, track: {args.fov} deg, {args.noise} px; track: the "
+          f"sets of {args.count} with >= 30 stars)")
     for name in names:
-        total = count(name, args)
-        print(f"{name:8} {total:>15,} instructions = {total / args.count:>13,.0f} a call")
+        total, calls = count(name, args)
+        print(f"{name:8} {total:>15,} instructions = {total / calls:>13,.0f} a call ({calls} calls)")
 
 
 if __name__ == "__main__":

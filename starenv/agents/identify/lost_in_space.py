@@ -537,7 +537,7 @@ class LostInSpaceIdentifier:
         # ... and then all six edges, under one of the 24 star orders.
         vectors = db.unit[catalog_rows]
         gram = (vectors @ vectors.transpose(0, 2, 1)).reshape(-1, 16)
-        catalog_edges = np.arccos(np.minimum(gram[:, _ORDER_GRAM], 1.0))  # (k, 6, 24): edge e under order o
+        catalog_edges = np.arccos(np.minimum(gram, 1.0))[:, _ORDER_GRAM]  # (k, 6, 24): edge e under order o
         miss = np.abs(catalog_edges - edges[quad_of, :, None]).max(axis=1)  # (k, 24)
         close = (miss.min(axis=1) <= tolerance).nonzero()[0]
         return quad_of[close], catalog_rows[close[:, None], STAR_ORDERS[miss[close].argmin(axis=1)]]

@@ -257,6 +257,19 @@ def test_a_star_hit_by_a_cosmic_ray_is_still_found_where_it_is():
     assert np.hypot(*(stars.xy[0] - frame.truth.xy_centroid[0])) < 0.2
 
 
+@pytest.mark.parametrize("dx, dy", [(-3, 0), (0, 3), (2, -2), (3, 1)])
+def test_a_star_beside_a_hot_pixel_brighter_than_itself_is_still_found(dx, dy):
+    """A hot pixel (or a single-pixel hit) a few px from a faint star's centre is cleaned off, and the star, whose
+    own peak the spike does not touch, is no track's remnant however much brighter the spike was."""
+    frame = render([250.3, 260.6], 6.0)
+    image = read_out(frame.signal, 3).astype(np.int64)
+    star_dn = int((expected_dn(frame.signal) - QUIET.bias_dn).sum())
+    image[261 + dy, 250 + dx] += 3 * star_dn
+    stars = CentroidDetector(psf_sigma_px=SIGMA).detect(image.astype(np.uint16), CAM)
+    assert len(stars) == 1
+    assert np.hypot(*(stars.xy[0] - frame.truth.xy_centroid[0])) < 0.3
+
+
 def test_saturated_star_is_found_and_centroided():
     frame = render([300.4, 250.7], -1.0)
     image = read_out(frame.signal, 5)

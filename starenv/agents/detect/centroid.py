@@ -58,6 +58,7 @@ METHODS = ("cog", "iwcog", "gaussian")
 SPIKE_MARGIN = 0.75  # a spike's 3 x 3 median is below this fraction of the least a PSF pixel's can be
 SPIKE_SIGMA = 3.0  # significance (noise sigmas) of the excess over the local median that marks a pixel as a spike
 SPIKE_GROW_SIGMA = 1.5  # the same for the neighbours of spikes, on the cleaned image
+TRACK_PIECES = 5  # pixels taken off near a blob that make a track, beyond a lone spike and the neighbours grown to it
 MEDIAN_RATIO_FLOOR = 0.01  # PSF pixels below this fraction of the peak are left out of the spike limit
 MEDIAN_NOISE = 0.42  # noise of the median of 9 pixels, in pixel-noise sigmas
 LINE_SIGNIFICANCE = 3.0  # the track test decides only where a star would pass it by this many errors
@@ -292,7 +293,7 @@ class CentroidDetector:
 
         good = np.ones(n, bool)
         if self.reject_sharp:
-            good &= self._not_sharp(blobs, resid, noise, psf) & ~self._track_remnant(grown, n, removed, blobs.flux)
+            good &= self._not_sharp(blobs, resid, noise, psf) & ~self._track_remnant(grown, n, removed, blobs)
 
         centre, axis, var_major, var_minor = blobs.mask_axes()
         streak = var_major - var_minor > STREAK_ANISOTROPY_PX2
@@ -513,16 +514,23 @@ class CentroidDetector:
         return int(compact[-1])
 
     @staticmethod
-    def _track_remnant(
-        grown: np.ndarray, n: int, removed: tuple[np.ndarray, np.ndarray], flux: np.ndarray
-    ) -> np.ndarray:
+    def _track_remnant(grown: np.ndarray, n: int, removed: tuple[np.ndarray, np.ndarray], blobs: _Blobs) -> np.ndarray:
         """Mask of the ``n`` blobs (labels in ``grown``) that are what is left of a cosmic-ray track after cleaning:
-        more light was taken off (``removed``: flat indices, DN) within 1 px of their grown region than they hold."""
+        more light was taken off (``removed``: sorted flat indices, DN) within 1 px of their grown region than they
+        hold, and either a pixel taken off touches their peak or ``TRACK_PIECES`` pixels or more were taken off
+        there.  What is left of a track is its ragged edge, brightest beside the track, or pieces of a track of
+        several pixels; a star with a lone hot pixel or a single-pixel hit a few px from its centre keeps its own
+        peak, and is kept however bright the spike was."""
         index, amount = removed
+        if len(index) == 0:
+            return np.zeros(n, bool)
         owner = grown.ravel()[_box(index, grown.shape)].astype(np.intp)  # (9, spikes)
         pairs = _unique(owner * len(index) + np.arange(len(index)))  # (blob label, spike) once each
         blob, spike = np.divmod(pairs[pairs >= len(index)], len(index))
-        return np.bincount(blob - 1, amount[spike], n) >= flux
+        beside = _box(blobs.peak, grown.shape)  # (9, n)
+        touched = (index[np.minimum(np.searchsorted(index, beside), len(index) - 1)] == beside).any(axis=0)
+        track = np.bincount(blob - 1, minlength=n) >= TRACK_PIECES
+        return (np.bincount(blob - 1, amount[spike], n) >= blobs.flux) & (touched | track)
 
     def _not_sharp(self, blobs: _Blobs, resid: np.ndarray, noise: np.ndarray, psf: _Psf) -> np.ndarray:
         """Mask of blobs no sharper than the PSF: enough light around the peak, and not a one-pixel-wide track."""

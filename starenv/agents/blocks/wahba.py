@@ -47,13 +47,15 @@ def wahba_svd(body: np.ndarray, inertial: np.ndarray, weights: np.ndarray | None
     """
     if weights is not None:
         body = body * weights[..., None]
-    profile = np.swapaxes(body, -1, -2) @ inertial
-    if profile.ndim == 2:
-        u, _, vt, _ = lapack.dgesdd(profile)
-        (a, b, c), (d, e, f), (g, h, i) = (u @ vt).tolist()
+    if body.ndim == 2 and inertial.ndim == 2:
+        u, _, vt, _ = lapack.dgesdd(body.T @ inertial)
+        attitude = u @ vt
+        (a, b, c), (d, e, f), (g, h, i) = attitude.tolist()
         if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0.0:
             u[:, 2] = -u[:, 2]
-        return u @ vt
+            attitude = u @ vt
+        return attitude
+    profile = np.swapaxes(body, -1, -2) @ inertial
     u, _, vt = np.linalg.svd(profile)
     u[..., :, 2] *= np.where(np.linalg.det(u @ vt) < 0.0, -1.0, 1.0)[..., None]
     return u @ vt

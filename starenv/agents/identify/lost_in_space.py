@@ -336,7 +336,8 @@ class LostInSpaceIdentifier:
         if len(stars) != len(cameras):
             raise ValueError(f"stars must hold one StarMeasurements per camera ({len(cameras)}), got {len(stars)}")
         counts = [len(s) for s in stars]
-        ids = np.full(sum(counts), -1, dtype=np.int64)
+        ids = np.empty(sum(counts), dtype=np.int64)
+        ids.fill(-1)
         if max(counts, default=0) >= 4:
             frame = self._frame(stars, self._heads_of(cameras), counts)
             solved = self._solve(frame, stars, counts)
@@ -361,7 +362,8 @@ class LostInSpaceIdentifier:
                     detection, star = detection[alone], star[alone]
                 # Each star's closest detection; a star with a second one within CLAIM_SIGMAS of the centroid
                 # scatter (measured on those closest pairs, in match radii squared per axis) labels neither.
-                dot = np.full(len(ids), -np.inf)
+                dot = np.empty(len(ids))
+                dot.fill(-np.inf)
                 dot[detection] = dots[detection, star]
                 star_of = np.zeros(len(ids), dtype=np.intp)
                 star_of[detection] = star
@@ -369,7 +371,7 @@ class LostInSpaceIdentifier:
                 radius2 = frame.radius2 if scalar else frame.radius2[detection]
                 variance = (self.centroid_noise_px / self.match_radius_px) ** 2
                 if len(detection) >= _SCATTER_PAIRS:  # (a sum over the count: np.mean's bits, less its overhead)
-                    variance = float(((1.0 - dot[detection]) / radius2).sum()) / len(detection)
+                    variance = float(np.add.reduce((1.0 - dot[detection]) / radius2)) / len(detection)
                 claim2 = CLAIM_SIGMAS**2 * variance * (frame.radius2 if scalar else frame.radius2[:, None])
                 detection, star = sole_per_star(detection, star_of, (dots >= 1.0 - 0.5 * claim2).sum(axis=0))
                 ids[detection] = (self._label_hip[nearby.rows] if nearby.hip is None else nearby.hip)[star]
@@ -473,7 +475,7 @@ class LostInSpaceIdentifier:
         brightest, first = [], 0
         for s, count in zip(stars, counts, strict=True):  # per head, pooled rows of its brightest detections
             if count >= 4:  # (brightest first)
-                order = np.argsort(-s.flux, kind="stable")[: self.max_pattern_stars]
+                order = (-s.flux).argsort(kind="stable")[: self.max_pattern_stars]
                 brightest.append(order + first if first else order)
             first += count
         steps = self._quad_steps

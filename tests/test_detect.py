@@ -11,6 +11,7 @@ from scipy.spatial.distance import cdist
 
 from starenv import scenario
 from starenv.agents.base import StarDetector
+from starenv.agents.detect import centroid
 from starenv.agents.detect.centroid import CentroidDetector
 from starenv.sim.conventions import pointing
 from starenv.sim.imager import Detector, DetectorSpec
@@ -246,6 +247,17 @@ def test_hot_pixels_and_cosmic_rays_alone_are_not_stars():
         assert np.count_nonzero(image > spec.bias_dn + 40) > 50  # the defects are there, and bright
         assert len(CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)) == 0
         assert len(CentroidDetector(psf_sigma_px=SIGMA, reject_sharp=False).detect(image, CAM)) > 10
+
+
+def test_a_long_tracks_remnant_is_dropped_even_where_its_peak_touches_nothing_cleaned(monkeypatch):
+    """Seed 9 of long tracks (6 px mean, a hundred times the rate, no star) leaves a remnant whose peak touches no
+    pixel the cleaning took off: with the track clause off it is detected, with it (TRACK_PIECES) it is not."""
+    spec = DetectorSpec(hot_pixel_fraction=0.0, cosmic_ray_rate_per_cm2_s=3000.0, cosmic_ray_track_px=6.0)
+    nothing = StarSignal(np.zeros(0, np.int64), np.zeros(0, np.float32), (CAM.height, CAM.width))
+    image = read_out(nothing, 9, spec)
+    assert len(CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)) == 0
+    monkeypatch.setattr(centroid, "TRACK_PIECES", 10**9)
+    assert len(CentroidDetector(psf_sigma_px=SIGMA).detect(image, CAM)) == 1
 
 
 def test_a_star_hit_by_a_cosmic_ray_is_still_found_where_it_is():

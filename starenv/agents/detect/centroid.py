@@ -293,7 +293,7 @@ class CentroidDetector:
 
         good = np.ones(n, bool)
         if self.reject_sharp:
-            good &= self._not_sharp(blobs, resid, noise, psf) & ~self._track_remnant(grown, n, removed, blobs)
+            good &= self._not_sharp(blobs, resid, noise, psf) & ~self._track_remnant(grown, removed, blobs)
 
         centre, axis, var_major, var_minor = blobs.mask_axes()
         streak = var_major - var_minor > STREAK_ANISOTROPY_PX2
@@ -514,14 +514,15 @@ class CentroidDetector:
         return int(compact[-1])
 
     @staticmethod
-    def _track_remnant(grown: np.ndarray, n: int, removed: tuple[np.ndarray, np.ndarray], blobs: _Blobs) -> np.ndarray:
-        """Mask of the ``n`` blobs (labels in ``grown``) that are what is left of a cosmic-ray track after cleaning:
+    def _track_remnant(grown: np.ndarray, removed: tuple[np.ndarray, np.ndarray], blobs: _Blobs) -> np.ndarray:
+        """Mask of the blobs (labels in ``grown``) that are what is left of a cosmic-ray track after cleaning:
         more light was taken off (``removed``: sorted flat indices, DN) within 1 px of their grown region than they
         hold, and either a pixel taken off touches their peak or ``TRACK_PIECES`` pixels or more were taken off
         there.  What is left of a track is its ragged edge, brightest beside the track, or pieces of a track of
         several pixels; a star with a lone hot pixel or a single-pixel hit a few px from its centre keeps its own
         peak, and is kept however bright the spike was."""
         index, amount = removed
+        n = blobs.n
         if len(index) == 0:
             return np.zeros(n, bool)
         owner = grown.ravel()[_box(index, grown.shape)].astype(np.intp)  # (9, spikes)

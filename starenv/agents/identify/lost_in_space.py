@@ -31,13 +31,14 @@ Method
     ``match_threshold`` are verified (a frame's chance of accepting a wrong attitude is then at most the number of
     hypotheses it tests times ``match_threshold``, by the union bound).  Of the verified hypotheses of the first
     breadth-first step that has any, the one matching most detections wins; when one head has four detections or more
-    (the common case), the quads of the first step are looked up one at a time instead, in plain numbers (a few quads
-    cost less so than as arrays), and the first verified one wins (two verified attitudes in one step would mean a
-    false match).  Matching and refining the attitude then alternate, the search widened by the attitude's uncertainty
-    (a pattern in one small field leaves the roll about it loose, which moves the stars of the other heads), and
-    every detection within the labelling radius of a catalogue star is labelled (a detection with two catalogue stars
-    within its radius, or a star with two detections within ``CLAIM_SIGMAS`` centroid sigmas, is left unidentified:
-    which one made it is a guess; of two detections further apart the closest is the star's).  The labelling radius is
+    (the common case), the quads of the first two steps (15 quads) are looked up one at a time instead, in plain
+    numbers (a few quads cost less so than as arrays, and the search stops at the first verified one), and the first
+    verified one wins (two verified attitudes in one step would mean a false match).  Matching and refining the
+    attitude then alternate, the search widened by the attitude's uncertainty (a pattern in one small field leaves
+    the roll about it loose, which moves the stars of the other heads), and every detection within the labelling
+    radius of a catalogue star is labelled (a detection with two catalogue stars within its radius, or a star with
+    two detections within ``CLAIM_SIGMAS`` centroid sigmas, is left unidentified: which one made it is a guess; of
+    two detections further apart the closest is the star's).  The labelling radius is
     the match radius, widened when the scatter of the matched detections about their stars (measured under the
     refined attitude, on 8 pairs or more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1 px of
     noise per axis, the 3 px default alone would leave about 1 % of the stars unlabelled (``exp(-4.5)``).  Verifying,
@@ -119,8 +120,10 @@ _ORDER_GRAM = (4 * STAR_ORDERS[:, EDGE_FROM] + STAR_ORDERS[:, EDGE_TO]).T.copy()
 _EDGE_PAIRS = list(zip(EDGE_FROM.tolist(), EDGE_TO.tolist(), strict=True))
 _STAR_ORDER_LISTS = STAR_ORDERS.tolist()
 _ORDER_OF_EDGES = {tuple(edges): order for order, edges in enumerate(ORDER_EDGES.tolist())}  # star order of an edge map
-_FIRST_STEP = {  # the quads of step one, and each as an index (1, 4)
-    count: [(quad, np.array([quad])) for quad in itertools.combinations(range(count), 4)] for count in (4, 5)
+_PLAIN_STEPS = {  # per number of stars (4-6): the quads of the first two steps, and each as an index (1, 4)
+    count: [(quad, np.array([quad])) for quad in itertools.combinations(range(min(count, 5)), 4)]
+    + [(quad + (5,), np.array([quad + (5,)])) for quad in itertools.combinations(range(5), 3) if count == 6]
+    for count in (4, 5, 6)
 }
 
 
@@ -479,17 +482,17 @@ class LostInSpaceIdentifier:
                 brightest.append(order + first if first else order)
             first += count
         steps = self._quad_steps
-        if len(brightest) == 1:  # one head: the quads of the first step one at a time, in plain numbers
-            top = brightest[0][:5]
+        if len(brightest) == 1:  # one head: the quads of the first two steps one at a time, in plain numbers
+            top = brightest[0][:6]
             vectors = frame.body[top]
             angles = np.arccos(np.minimum(vectors.dot(vectors.T), 1.0)).tolist()
-            for quad, index in _FIRST_STEP[len(top)]:
+            for quad, index in _PLAIN_STEPS[len(top)]:
                 candidates = self._quad_candidates([angles[quad[i]][quad[j]] for i, j in _EDGE_PAIRS])
                 if candidates:
                     hypothesis = self._best_hypothesis(frame, vectors[index], candidates, frame.radius2)
                     if hypothesis is not None:  # (a second verified attitude in the step would be a false match)
                         return self._grow(frame, *hypothesis)
-            steps = steps[1:]
+            steps = steps[2:]
         heads = []
         for rows in brightest:  # their angles
             vectors = frame.body[rows]

@@ -308,4 +308,4 @@ def _votes(agree: np.ndarray, det: np.ndarray) -> np.ndarray:
 def _first_of_each(group: np.ndarray, order: np.ndarray) -> np.ndarray:
     """The first entry of ``order`` (a sort by ``group``, then preference) in each group of ``group``."""
     grouped = group[order]
-    return order[np.r_[True, grouped[1:] != grouped[:-1]]]
+    return order[np.concatenate(([True], grouped[1:] != grouped[:-1]))]

@@ -516,7 +516,7 @@ class CentroidDetector:
     @staticmethod
     def _track_remnant(grown: np.ndarray, removed: tuple[np.ndarray, np.ndarray], blobs: _Blobs) -> np.ndarray:
         """Mask of the blobs (labels in ``grown``) that are what is left of a cosmic-ray track after cleaning:
-        more light was taken off (``removed``: sorted flat indices, DN) within 1 px of their grown region than they
+        more light was taken off (``removed``: flat indices, DN) within 1 px of their grown region than they
         hold, and either a pixel taken off touches their peak or ``TRACK_PIECES`` pixels or more were taken off
         there.  What is left of a track is its ragged edge, brightest beside the track, or pieces of a track of
         several pixels; a star with a lone hot pixel or a single-pixel hit a few px from its centre keeps its own
@@ -529,7 +529,7 @@ class CentroidDetector:
         pairs = _unique(owner * len(index) + np.arange(len(index)))  # (blob label, spike) once each
         blob, spike = np.divmod(pairs[pairs >= len(index)], len(index))
         beside = _box(blobs.peak, grown.shape)  # (9, n)
-        touched = (index[np.minimum(np.searchsorted(index, beside), len(index) - 1)] == beside).any(axis=0)
+        touched = np.isin(beside, index).any(axis=0)
         track = np.bincount(blob - 1, minlength=n) >= TRACK_PIECES
         return (np.bincount(blob - 1, amount[spike], n) >= blobs.flux) & (touched | track)
 

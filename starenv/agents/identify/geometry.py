@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import operator
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -43,6 +44,13 @@ def body_vectors(stars: list[StarMeasurements], cameras: list[Camera]) -> tuple[
     vectors = [cam.unproject(s.xy) @ cam.mounting.as_matrix() for s, cam in zip(stars, cameras, strict=True)]
     heads = np.repeat(np.arange(len(stars)), [len(s) for s in stars])
     return np.concatenate(vectors) if vectors else np.zeros((0, 3)), heads
+
+
+def same_cameras(kept: tuple[Camera, ...], cameras: list[Camera]) -> bool:
+    """Whether ``cameras`` are the very objects of ``kept`` (cameras are frozen: constants made for them hold)."""
+    if len(kept) != len(cameras):
+        return False
+    return kept[0] is cameras[0] if len(cameras) == 1 else all(map(operator.is_, kept, cameras))
 
 
 def with_ids(stars: list[StarMeasurements], ids: np.ndarray) -> list[StarMeasurements]:

@@ -96,6 +96,7 @@ from starenv.agents.identify.geometry import (
     closest_per_star,
     mask_pairs,
     resolvable,
+    same_cameras,
     same_matches,
     sole_per_star,
     with_ids,
@@ -385,9 +386,7 @@ class LostInSpaceIdentifier:
     def _heads_of(self, cameras: list[Camera]) -> _Heads:
         """The per-head constants of ``cameras`` (kept for the last list of cameras seen; cameras are frozen)."""
         heads = self._heads
-        if heads is not None and len(heads.cameras) == len(cameras) and (
-            heads.cameras[0] is cameras[0] if len(cameras) == 1 else all(map(operator.is_, heads.cameras, cameras))
-        ):
+        if heads is not None and same_cameras(heads.cameras, cameras):
             return heads
         mountings = [cam.mounting.as_matrix() for cam in cameras]
         self._heads = heads = _Heads(

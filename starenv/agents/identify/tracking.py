@@ -56,7 +56,6 @@ A star closer than ``MERGE_PX`` pixels to a brighter one is taken as part of it 
 from __future__ import annotations
 
 import math
-import operator
 from typing import NamedTuple
 
 import numpy as np
@@ -73,6 +72,7 @@ from starenv.agents.identify.geometry import (
     closest_per_star,
     mask_pairs,
     resolvable,
+    same_cameras,
     same_matches,
     sole_per_star,
     with_ids,
@@ -237,7 +237,7 @@ class TrackingIdentifier:
     def _views(self, cameras: list[Camera]) -> _Views:
         """The per-head constants of ``cameras`` (kept for the last list of cameras seen; cameras are frozen)."""
         views = self._last_views
-        if views is None or len(views.cameras) != len(cameras) or not all(map(operator.is_, views.cameras, cameras)):
+        if views is None or not same_cameras(views.cameras, cameras):
             pixel = np.array([1.0 / min(cam.fx, cam.fy) for cam in cameras])
             reach = np.array([
                 min(cam.half_diagonal + self.gate_px * scale, math.pi)
@@ -299,13 +299,17 @@ class _Views(NamedTuple):
 def _votes(agree: np.ndarray, det: np.ndarray) -> np.ndarray:
     """Per candidate, the detections holding a candidate that agrees with it: ``agree`` (c, c) of candidates whose
     detections ``det`` (c,) ascend (each detection's candidates in a run)."""
-    runs = np.flatnonzero(det[1:] != det[:-1]) + 1  # where each run starts, less the first
-    if len(runs) == len(det) - 1:  # one candidate a detection: a vote a candidate
+    starts = np.flatnonzero(_run_starts(det))
+    if len(starts) == len(det):  # one candidate a detection: a vote a candidate
         return agree.sum(axis=1)
-    return np.logical_or.reduceat(agree, np.concatenate(([0], runs)), axis=1).sum(axis=1)
+    return np.logical_or.reduceat(agree, starts, axis=1).sum(axis=1)
 
 
 def _first_of_each(group: np.ndarray, order: np.ndarray) -> np.ndarray:
     """The first entry of ``order`` (a sort by ``group``, then preference) in each group of ``group``."""
-    grouped = group[order]
-    return order[np.concatenate(([True], grouped[1:] != grouped[:-1]))]
+    return order[_run_starts(group[order])]
+
+
+def _run_starts(values: np.ndarray) -> np.ndarray:
+    """Mask of the entries of ``values`` (grouped: equal ones adjacent) that start a run of equal values."""
+    return np.concatenate(([True], values[1:] != values[:-1]))

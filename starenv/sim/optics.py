@@ -568,6 +568,8 @@ class Camera:
         front = v[:, 2] > 1e-12
         z = np.where(front, v[:, 2], np.nan)
         ideal = np.stack([self.fx * v[:, 0] / z + self.cx, self.fy * v[:, 1] / z + self.cy], axis=1)
+        if np.all(front):
+            return self.distortion.distort(ideal, self.intrinsics), front
         out = np.full_like(ideal, np.nan)
         if np.any(front):
             out[front] = self.distortion.distort(ideal[front], self.intrinsics)

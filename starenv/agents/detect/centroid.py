@@ -78,6 +78,7 @@ MAX_LABELS = 2**24  # labels are carried in float32 images, exact up to here
 ZONE_SIGMA_RATIO = 1.25
 BOX = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]  # a 3 x 3 neighbourhood
 FORWARD_NEIGHBOURS = [(0, 1), (1, -1), (1, 0), (1, 1)]  # each 8-connected pixel pair once
+_CENTRE_FIRST = [BOX.index((0, 0))] + [k for k, step in enumerate(BOX) if step != (0, 0)]  # rows of _box's result
 
 
 def _flag(name: str, value) -> bool:
@@ -433,16 +434,11 @@ class CentroidDetector:
         core_flat, value = core.ravel(), signal.ravel()
         label = core_flat[pixel].astype(np.intp)
         y, x = np.divmod(pixel, width)
-        # Steepest ascent: each pixel points to its highest 8-neighbour in the same blob (itself if none is higher).
-        best, best_value = pixel.copy(), value[pixel]
-        box = _box(pixel, core.shape)
-        for k, (dy, dx) in enumerate(BOX):
-            if not dy and not dx:
-                continue
-            q = box[k]
-            v = np.where(core_flat[q] == label, value[q], -np.inf)
-            up = v > best_value
-            best[up], best_value[up] = q[up], v[up]
+        # Steepest ascent: each pixel points to its highest 8-neighbour in the same blob (itself if none is higher;
+        # of equals, the first in BOX order): the first maximum over itself, then its neighbours in BOX order.
+        box = _box(pixel, core.shape)[_CENTRE_FIRST]
+        best = np.take_along_axis(box, np.where(core_flat[box] == label, value[box], -np.inf).argmax(axis=0)[None],
+                                  axis=0)[0]
         split = np.bincount(label[best == pixel], minlength=n + 1)[label] >= 2
         if not split.any():
             return n

@@ -240,7 +240,7 @@ class StarRenderer:
             return self._spot_signal(paths, weight, spot)
         # Working memory per star: bands and fractions (~6 float64 per instant and band pixel) and ~4 float64
         # arrays the size of its window; consecutive stars are batched under BATCH_BYTES.
-        n_band = _band_table(float(self.psf_sigma_px)).shape[1]
+        n_band = _band_table(float(self.psf_sigma_px)).shape[0]
         low, high = _span(paths)
         extent = high - low + n_band + 16
         cost = 48.0 * paths.shape[1] * n_band + 32.0 * extent[:, 0] * extent[:, 1]
@@ -436,8 +436,8 @@ def normal_cdf(z: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def _band_table(psf_sigma_px: float) -> np.ndarray:
-    """Fraction of a pixel-integrated Gaussian in each of the ``n_band`` pixels of an instant's band (columns),
-    tabulated over the PSF centre's sub-pixel phase (rows: ``BAND_TABLE_STEPS`` steps, linear interpolation:
+    """Fraction of a pixel-integrated Gaussian in each of the ``n_band`` pixels of an instant's band (rows),
+    tabulated over the PSF centre's sub-pixel phase (columns: ``BAND_TABLE_STEPS`` steps, linear interpolation:
     error < 1e-8)."""
     radius = PSF_RADIUS_SIGMA * psf_sigma_px
     n_band = math.ceil(2 * radius) + 2
@@ -445,7 +445,7 @@ def _band_table(psf_sigma_px: float) -> np.ndarray:
     edges = np.arange(n_band + 1) - 0.5  # pixel edges relative to the band start
     centre = radius + phase  # PSF centre relative to the band start
     cdf = erf((edges[None, :] - centre[:, None]) / (math.sqrt(2.0) * psf_sigma_px))
-    table = 0.5 * np.diff(cdf, axis=1)
+    table = np.ascontiguousarray(0.5 * np.diff(cdf, axis=1).T)
     table.flags.writeable = False
     return table
 
@@ -465,20 +465,20 @@ def band_fractions(points: np.ndarray, psf_sigma_px: float | np.ndarray) -> tupl
         edges -= points[..., None]
         edges /= sigma[..., None, None]
         return start.astype(np.int64), np.diff(normal_cdf(edges), axis=-1)
-    table = _band_table(float(psf_sigma_px))  # (phases, n_band)
+    table = _band_table(float(psf_sigma_px))  # (n_band, phases)
     radius = PSF_RADIUS_SIGMA * psf_sigma_px
     start = np.floor(points - radius)
-    pos = (points - start - radius) * (table.shape[0] - 1)  # sub-pixel phase in table steps
-    i0 = np.minimum(pos.astype(np.int64), table.shape[0] - 2)
+    pos = (points - start - radius) * (table.shape[1] - 1)  # sub-pixel phase in table steps
+    i0 = np.minimum(pos.astype(np.int64), table.shape[1] - 2)
     w1 = pos - i0
-    # table[i0] (1 - w1) + table[i0 + 1] w1: each point's band a contiguous row of the table
-    frac = table[i0]
-    frac *= (1.0 - w1)[..., None]
+    # table[:, i0] (1 - w1) + table[:, i0 + 1] w1, band pixels first so that every product runs over all points
+    frac = np.take(table, i0, axis=1)
+    frac *= 1.0 - w1
     i0 += 1
-    above = table[i0]
-    above *= w1[..., None]
+    above = np.take(table, i0, axis=1)
+    above *= w1
     frac += above
-    return start.astype(np.int64), frac
+    return start.astype(np.int64), np.moveaxis(frac, 0, -1)
 
 
 def still_image(xy: np.ndarray, electrons: np.ndarray, shape: tuple[int, int], psf_sigma_px: float,

@@ -301,14 +301,13 @@ class StarRenderer:
             patches = patch_fn(offset[group], frac[group], h, w)  # (m, h, w) expected electrons
             rows = lo[group, 1, None, None] + np.arange(h)[None, :, None]  # (m, h, 1)
             cols = lo[group, 0, None, None] + np.arange(w)[None, None, :]  # (m, 1, w)
+            edge = np.flatnonzero(np.any((lo[group] < 0) | (lo[group] + (w, h) > (cam.width, cam.height)), axis=1))
+            if len(edge):  # windows over an edge: the light beyond it is lost
+                r, c = rows[edge], cols[edge]
+                patches[edge] = np.where((r >= 0) & (r < cam.height) & (c >= 0) & (c < cam.width), patches[edge], 0.0)
+            electrons[group] = patches.sum(axis=(1, 2))
+            peak[group] = patches.max(axis=(1, 2))
             keep = patches > MIN_ELECTRONS
-            on_sensor = patches
-            if not (np.all(lo[group] >= 0) and np.all(lo[group] + (w, h) <= (cam.width, cam.height))):
-                on = (rows >= 0) & (rows < cam.height) & (cols >= 0) & (cols < cam.width)  # windows over an edge
-                on_sensor = np.where(on, patches, 0.0)
-                keep &= on
-            electrons[group] = on_sensor.sum(axis=(1, 2))
-            peak[group] = on_sensor.max(axis=(1, 2))
             indices.append(np.broadcast_to(rows * cam.width + cols, keep.shape)[keep])
             values.append(patches[keep])
         return np.concatenate(indices), np.concatenate(values), electrons, peak

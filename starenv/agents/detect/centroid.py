@@ -284,7 +284,7 @@ class CentroidDetector:
         core.fill(0)
         core.ravel()[pixel] = lut[component]
         pixel = pixel[lut[component] > 0]
-        n = self._deblend(core, pixel, signal, limit, len(kept)) if self.deblend_contrast < 1.0 else len(kept)
+        n = self._deblend(core, pixel, signal, limit, len(kept), work) if self.deblend_contrast < 1.0 else len(kept)
         grown = core
         if m := psf.margin_px:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
@@ -426,7 +426,8 @@ class CentroidDetector:
         flat[index] = median[is_spike]
         return index, before - flat[index]
 
-    def _deblend(self, core: np.ndarray, pixel: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int) -> int:
+    def _deblend(self, core: np.ndarray, pixel: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int,
+                 work: Workspace) -> int:
         """Split blobs of ``core`` (labels 1 .. n, 0 elsewhere; ``pixel``: the sorted flat indices of its blob
         pixels) holding several significant maxima of ``signal``; relabels ``core`` in place and returns the new
         number of blobs."""
@@ -442,7 +443,9 @@ class CentroidDetector:
         split = np.bincount(label[best == pixel], minlength=n + 1)[label] >= 2
         if not split.any():
             return n
-        top = np.searchsorted(pixel, best)  # positions in pixel, which is sorted
+        position = work.array("position", np.int32).ravel()  # each blob pixel's position in pixel (read there only)
+        position[pixel] = np.arange(len(pixel), dtype=np.int32)
+        top = position[best]
         while not np.array_equal(top[top], top):
             top = top[top]
 
@@ -453,7 +456,7 @@ class CentroidDetector:
             q = (y[i] + dy) * width + x[i] + dx
             same = core_flat[q] == label[i]
             i, q = i[same], q[same]
-            j = np.searchsorted(pixel, q)
+            j = position[q]
             i, j = i[top[i] != top[j]], j[top[i] != top[j]]
             pairs.append(np.column_stack([top[i], top[j], np.minimum(value[pixel[i]], value[pixel[j]])]))
         pairs = np.concatenate(pairs)

@@ -295,7 +295,7 @@ class StarSensorEnv(gym.Env):
         space = self.observation_space
         image = frame.heads[0].image
         if len(frame.heads) == 1 and image.shape == space["frames"].shape[1:] and image.dtype == np.uint16:
-            frames = image[None]  # the read-out's own new array: nothing else writes to it
+            frames = image[None]  # the read-out's new array itself (the env's frame keeps it for render() only)
         else:
             frames = np.empty(space["frames"].shape, dtype=np.uint16)  # only a smaller head's padding is zeroed
             for i, h in enumerate(frame.heads):

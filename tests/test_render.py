@@ -119,6 +119,38 @@ def test_smearing_conserves_the_signal(rate_dps):
     assert frame.truth.electrons[0] == pytest.approx(expected, rel=1e-5)
 
 
+@pytest.mark.parametrize("edge_xy", [(0.2, 300.0), (511.4, 40.0), (200.0, -0.3), (511.7, 511.2)])
+def test_light_beyond_the_sensor_edge_is_lost_and_the_rest_kept(edge_xy):
+    """Two still stars rendered together (the same window size, so one batch): one straddling an edge or a corner,
+    one inside.  The inside one keeps all its light; the edge one keeps the pixel-integrated Gaussian's share over
+    the sensor's pixels, ``prod(Phi((size - 1/2 - c) / sigma) - Phi((-1/2 - c) / sigma))``, and no pixel of either
+    lies outside its own neighbourhood (light wrapped to the far side of the frame would)."""
+    a0 = pointing(BORESIGHT_RA, BORESIGHT_DEC, 0.0)
+    xy = np.array([edge_xy, (CAM.cx + 40.3, CAM.cy - 25.6)])
+    catalog = StarCatalog(hip=np.array([1, 2]), magnitude=np.array([5.0, 5.0]),
+                          unit=a0.inv().apply(CAM.unproject(xy)), epoch=2026.0)
+    renderer = StarRenderer(catalog, CAM, Photometry(aperture_m=0.035), SIGMA)
+    frame = renderer.render(Trajectory(ConstantRate([0, 0, 0]), a0), 0.0, EXPOSURE)
+    total = renderer.electrons_per_s[0] * EXPOSURE
+    order = np.argsort(frame.truth.catalog_id)
+    np.testing.assert_allclose(frame.truth.xy_mid[order], xy, atol=1e-6)
+
+    def phi(z):
+        return 0.5 * (1.0 + erf(z / (SIGMA * math.sqrt(2.0))))
+
+    sizes = (CAM.width, CAM.height)
+    share = np.prod([phi(size - 0.5 - c) - phi(-0.5 - c) for c, size in zip(edge_xy, sizes, strict=True)])
+    assert share < 0.9  # the case does cut light
+    np.testing.assert_allclose(frame.truth.electrons[order], [total * share, total], rtol=1e-4)
+    image = frame.signal.image()
+    rows, cols = np.divmod(frame.signal.index, CAM.width)
+    near = [np.hypot(cols - x, rows - y) <= PSF_RADIUS_SIGMA * SIGMA * math.sqrt(2.0) + 1.0 for x, y in xy]
+    assert np.all(near[0] | near[1])
+    np.testing.assert_allclose(image.sum(dtype=np.float64), total * (share + 1.0), rtol=1e-4)
+    peak = frame.truth.peak_electrons[order][0]
+    assert peak == pytest.approx(image.ravel()[frame.signal.index[near[0]]].max(), rel=1e-6)  # (float32 signal)
+
+
 def test_sub_steps_follow_the_rate():
     renderer, a0 = one_star_renderer((CAM.cx, CAM.cy))
     counts = [renderer.render(Trajectory(ConstantRate([r * DEG, 0, 0]), a0), 0.0, EXPOSURE).n_instants

@@ -357,3 +357,15 @@ def test_row_windows_of_a_global_shutter_coincide_and_of_a_rolling_one_step_by_t
     opens, closes = row_window(2.0, 0.004, 1e-5, rows)
     np.testing.assert_allclose(np.diff(opens), 1e-5, rtol=1e-9)
     np.testing.assert_allclose(closes - opens, 0.004, rtol=1e-12)
+
+
+@given(st.lists(st.integers(-3, 3), max_size=40))
+@settings(max_examples=200, deadline=None)
+def test_run_starts_marks_the_first_entry_of_each_run_of_equal_values(values):
+    """Against an entry-by-entry walk: an entry starts a run when it is the first or differs from the one before
+    (an empty array has no starts)."""
+    array = np.array(values, dtype=np.int64)
+    expected = [k == 0 or values[k] != values[k - 1] for k in range(len(values))]
+    starts = blocks.run_starts(array)
+    assert starts.dtype == bool
+    assert starts.tolist() == expected

@@ -51,7 +51,7 @@ from scipy.special import erf, ndtr
 
 from starenv import checks
 from starenv.agents.base import StarMeasurements
-from starenv.agents.blocks import Workspace, background_maps, component_peaks, components_above
+from starenv.agents.blocks import Workspace, background_maps, component_peaks, components_above, run_starts
 from starenv.sim.optics import Camera
 
 METHODS = ("cog", "iwcog", "gaussian")
@@ -100,7 +100,7 @@ def _box(index: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def _unique(values: np.ndarray) -> np.ndarray:
     """The sorted distinct values of an integer array (numpy's own unique hashes, slower on a few thousand)."""
     values = np.sort(values, axis=None)
-    return values[np.r_[True, values[1:] != values[:-1]]] if len(values) else values
+    return values[run_starts(values)]
 
 
 def _pixel_fractions(sigma_px: float) -> tuple[float, float]:
@@ -466,7 +466,7 @@ class CentroidDetector:
         key = low_basin * len(pixel) + high_basin
         order = np.lexsort((-pairs[:, 2], key))
         key = key[order]
-        pairs = pairs[order[np.r_[True, key[1:] != key[:-1]]]]
+        pairs = pairs[order[run_starts(key)]]
         pairs = pairs[np.argsort(-pairs[:, 2], kind="stable")]
         height_at = value[pixel]
         rise_needed = np.maximum(limit.ravel()[pixel], self.deblend_contrast * height_at)
@@ -478,7 +478,7 @@ class CentroidDetector:
         # saddles between what is left go through the loop (same result as the loop over all saddles).
         end, partner = np.concatenate([a, b]), np.concatenate([b, a])
         first = np.lexsort((np.tile(np.arange(len(a)), 2), end))
-        first = first[np.r_[True, end[first][1:] != end[first][:-1]]]
+        first = first[run_starts(end[first])]
         end, partner, saddle = end[first], partner[first], np.tile(pairs[:, 2], 2)[first]
         merge = (height_at[end] < height_at[partner]) & (height_at[end] - saddle < rise_needed[end])
         basin = np.arange(len(pixel))

@@ -64,7 +64,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv import checks
 from starenv.agents.base import Identifier, StarMeasurements
-from starenv.agents.blocks import wahba_svd
+from starenv.agents.blocks import run_starts, wahba_svd
 from starenv.agents.identify.geometry import (
     CLAIM_SIGMAS,
     MERGE_PX,
@@ -299,7 +299,7 @@ class _Views(NamedTuple):
 def _votes(agree: np.ndarray, det: np.ndarray) -> np.ndarray:
     """Per candidate, the detections holding a candidate that agrees with it: ``agree`` (c, c) of candidates whose
     detections ``det`` (c,) ascend (each detection's candidates in a run)."""
-    starts = np.flatnonzero(_run_starts(det))
+    starts = np.flatnonzero(run_starts(det))
     if len(starts) == len(det):  # one candidate a detection: a vote a candidate
         return agree.sum(axis=1)
     return np.logical_or.reduceat(agree, starts, axis=1).sum(axis=1)
@@ -307,9 +307,4 @@ def _votes(agree: np.ndarray, det: np.ndarray) -> np.ndarray:
 
 def _first_of_each(group: np.ndarray, order: np.ndarray) -> np.ndarray:
     """The first entry of ``order`` (a sort by ``group``, then preference) in each group of ``group``."""
-    return order[_run_starts(group[order])]
-
-
-def _run_starts(values: np.ndarray) -> np.ndarray:
-    """Mask of the entries of ``values`` (grouped: equal ones adjacent) that start a run of equal values."""
-    return np.concatenate(([True], values[1:] != values[:-1]))
+    return order[run_starts(group[order])]

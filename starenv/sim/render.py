@@ -158,8 +158,8 @@ class StarRenderer:
         # the frame's start, middle, end and midpoint instants, as fractions of a star's exposure window
         steps = np.concatenate([[0.0, 0.5, 1.0], (np.arange(n_inst) + 0.5) / n_inst])
         if self.line_time_s == 0:  # one window for all stars: its rotations serve the boresight and every star
-            shared = self._rotations(trajectory, t_start + exposure * steps)
-            boresight = shared[1, 2]  # camera +z in ICRS at mid-exposure
+            rot = self._rotations(trajectory, t_start + exposure * steps)
+            boresight = rot[1, 2]  # camera +z in ICRS at mid-exposure
         else:
             boresight = self._rotations(trajectory, t_mid)[2]
         radius = min(math.pi, cam.half_diagonal + sweep + margin_px / min(cam.fx, cam.fy) + 1e-3)
@@ -172,14 +172,12 @@ class StarRenderer:
         window_start = np.full(len(idx), t_start)
         if self.line_time_s > 0 and len(idx):
             for _ in range(3):
-                rot = self._rotations(trajectory, window_start + 0.5 * exposure)[:, None]  # (stars, 1, 3, 3)
-                xy = self._positions(rot, units)[:, 0]
+                middle = self._rotations(trajectory, window_start + 0.5 * exposure)[:, None]  # (stars, 1, 3, 3)
+                xy = self._positions(middle, units)[:, 0]
                 row = np.clip(np.nan_to_num(xy[:, 1], nan=0.0), 0.0, cam.height - 1)
                 window_start, _ = row_window(t_start, exposure, self.line_time_s, row)
 
-        if self.line_time_s == 0:
-            rot = shared
-        else:
+        if self.line_time_s > 0:
             times = window_start[:, None] + exposure * steps[None, :]
             rot = self._rotations(trajectory, times.reshape(-1)).reshape(*times.shape, 3, 3)
         xy_all = self._positions(rot, units)  # (stars, 3 + n_inst, 2)

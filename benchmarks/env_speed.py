@@ -8,13 +8,17 @@ env's overhead (a byte to step, the frames written straight into shared memory, 
 env driven by the scenario's own pipeline, with and without prefetch (the next frame simulated on a thread while the
 pipeline works); then a cProfile of single-env steps.  ``--parts breakdown`` times the parts of the 1024 x 1024 step
 below (the read-out, the render, scoring, the gyro, the observation, the action's parsing) by wrapping each one's
-function, each part's time over the floor draw's.
+function, each part's time over the floor draw's (with ``noise_thread=False``, so that the read-out holds its draw).
 
 Then ``env.step`` on a 1024 x 1024 frame (paper 002's optics, stars to magnitude 7, ~40 on a frame; 50 ms exposure,
 ~30 px trails; noise on; the true attitude of the last frame sent as the action, so the step scores it): everything a
 step does (scoring, the star render, the read-out, the gyro, truth and observation) against the floor of drawing the
 frame's noise, one float32 standard normal per pixel, each step timed beside one floor draw.  Each round points the
-camera somewhere else, drawn from ``--seed``.
+camera somewhere else, drawn from ``--seed``.  The env takes its default, which in this process draws the noise on a
+second thread while the stars render; the same steps with ``noise_thread=False`` (all on one thread) and the CPU time
+a step (both threads) follow, each over the floor.  A vector env's workers draw on one thread (see
+:func:`~starenv.sim.sensor.noise_thread_default`), so their speed-up is also given over a single env without the
+noise thread, the same work a step as a worker's.
 
 Goals: >= 300 steps/s; >= 1.8x with 2 workers; a 1024 x 1024 ``env.step`` <= 1.5x the floor.  The machines are shared:
 each figure is the median of ``--repeats`` rounds with its spread (lowest and highest round) beside it, every round
@@ -52,9 +56,9 @@ FRAME_EXPOSURE_S = 0.05
 FRAME_TRAIL_PX = 30.0  # trail length on the boresight
 
 
-def single(steps: int, seed: int) -> tuple[float, float]:
-    """Steps/s of one env, and its CPU time (s) per step."""
-    env = gym.make(ENV_ID)
+def single(steps: int, seed: int, noise_thread: bool | None = None) -> tuple[float, float]:
+    """Steps/s of one env, and its CPU time (s) per step; ``noise_thread``: the env's (None: its default)."""
+    env = gym.make(ENV_ID, noise_thread=noise_thread)
     action = env.unwrapped.null_action()  # the same (empty) action the vector env sends
     env.reset(seed=seed)
     env.step(action)
@@ -212,16 +216,16 @@ def random_pointing_deg(rng: np.random.Generator) -> tuple[float, float, float]:
     return 360.0 * rng.random(), math.degrees(math.asin(2.0 * rng.random() - 1.0)), 360.0 * rng.random()
 
 
-def frame_env(seed: int, steps: int) -> gym.Env:
+def frame_env(seed: int, steps: int, noise_thread: bool | None = None) -> gym.Env:
     """The 1024 x 1024 env of the ``env.step`` figure, pointed at a direction drawn from ``seed``
-    (:func:`random_pointing_deg`), long enough for ``steps`` steps after its reset."""
+    (:func:`random_pointing_deg`), long enough for ``steps`` steps after its reset; ``noise_thread``: the env's."""
     ra, dec, roll = random_pointing_deg(np.random.default_rng(seed))
     focal_px = 58.5e-3 / 12e-6  # paper 002: f = 58.5 mm, 12 um pixels
     rate = math.degrees(FRAME_TRAIL_PX / (focal_px * FRAME_EXPOSURE_S)) / math.sqrt(2.0)  # deg/s about X and Y
     overrides = {"mag_limit": FRAME_MAG_LIMIT, "exposure_s": FRAME_EXPOSURE_S, "motion.rate_dps": [rate, rate, 0.0],
                  "motion.initial_ra_deg": ra, "motion.initial_dec_deg": dec, "motion.initial_roll_deg": roll,
                  "duration_s": (steps + 3) / 10.0}  # paper 002 runs at 10 Hz
-    return gym.make("StarEnv/Scenario-v0", scenario=FRAME_SCENARIO, overrides=overrides)
+    return gym.make("StarEnv/Scenario-v0", scenario=FRAME_SCENARIO, overrides=overrides, noise_thread=noise_thread)
 
 
 def _scored_step(env: gym.Env, action: dict, info: dict) -> dict:
@@ -230,10 +234,10 @@ def _scored_step(env: gym.Env, action: dict, info: dict) -> dict:
     return env.step(action)[4]
 
 
-def _stepped_frame_env(seed: int, steps: int) -> tuple[gym.Env, dict, dict, int]:
+def _stepped_frame_env(seed: int, steps: int, noise_thread: bool | None = None) -> tuple[gym.Env, dict, dict, int]:
     """:func:`frame_env` reset and stepped once (untimed): the env, the action it is stepped with, the last info and
     the stars on the first frame."""
-    env = frame_env(seed, steps + 1)
+    env = frame_env(seed, steps + 1, noise_thread)
     action = env.unwrapped.null_action()
     action["attitude_valid"] = np.array(1, np.int8)
     _, info = env.reset(seed=seed)
@@ -241,24 +245,26 @@ def _stepped_frame_env(seed: int, steps: int) -> tuple[gym.Env, dict, dict, int]
     return env, action, _scored_step(env, action, info), stars
 
 
-def frame_step(steps: int, seed: int, warmed=None) -> tuple[float, float, int]:
+def frame_step(steps: int, seed: int, warmed=None, noise_thread: bool | None = None) -> tuple[float, float, int, float]:
     """Median time (s) of a 1024 x 1024 ``env.step`` and of one floor draw of its frame, each step timed beside one
-    draw (after one untimed step; then ``warmed()``, if given); the stars on the first frame."""
-    env, action, info, stars = _stepped_frame_env(seed, steps)
+    draw (after one untimed step; then ``warmed()``, if given); the stars on the first frame; the process's mean CPU
+    time (s, all threads) a step over the floor draw's."""
+    env, action, info, stars = _stepped_frame_env(seed, steps, noise_thread)
     if warmed is not None:
         warmed()
     rng = np.random.default_rng(seed)
     noise = np.empty(env.observation_space["frames"].shape[1:], np.float32)
-    step_times, floor_times = [], []
+    step_times, floor_times, step_cpu, floor_cpu = [], [], 0.0, 0.0
     for _ in range(steps):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         rng.standard_normal(dtype=np.float32, out=noise)
-        t1 = time.perf_counter()
+        c1, t1 = time.process_time(), time.perf_counter()
         info = _scored_step(env, action, info)
         step_times.append(time.perf_counter() - t1)
         floor_times.append(t1 - t0)
+        step_cpu, floor_cpu = step_cpu + time.process_time() - c1, floor_cpu + c1 - c0
     env.close()
-    return float(np.median(step_times)), float(np.median(floor_times)), stars
+    return float(np.median(step_times)), float(np.median(floor_times)), stars, step_cpu / floor_cpu
 
 
 def profile(steps: int, seed: int) -> str:
@@ -308,7 +314,8 @@ def breakdown(steps: int, seed: int) -> dict[str, float]:
             for part in outer:
                 owner = getattr(owner, part)
             stack.enter_context(mock.patch.object(owner, attribute, timed(getattr(owner, attribute), label)))
-        _, floor_s, _ = frame_step(steps, seed, warmed=lambda: spent.update(dict.fromkeys(spent, 0.0)))
+        _, floor_s, *_ = frame_step(steps, seed, warmed=lambda: spent.update(dict.fromkeys(spent, 0.0)),
+                                    noise_thread=False)
     return {label: total / steps / floor_s for label, total in spent.items()}
 
 
@@ -340,11 +347,14 @@ def main() -> None:
     for k in range(args.repeats):
         found: dict[str, float] = {}
         if "step" in parts:
-            step_s, floor_s, stars = frame_step(args.steps, seed + k)
-            found |= {"frame step": step_s, "frame floor": floor_s, "frame stars": stars}
+            step_s, floor_s, stars, cpu = frame_step(args.steps, seed + k)
+            serial_s, serial_floor_s, *_ = frame_step(args.steps, seed + k, noise_thread=False)
+            found |= {"frame step": step_s, "frame floor": floor_s, "frame stars": stars, "frame cpu": cpu,
+                      "serial ratio": serial_s / serial_floor_s}
         if parts & {"single", "vector", "pipeline"}:
             one, one_cpu = single(args.steps, seed)
-            found |= {"floor": floor_rate(shape, args.steps, seed), "single": one, "single cpu": one_cpu}
+            found |= {"floor": floor_rate(shape, args.steps, seed), "single": one, "single cpu": one_cpu,
+                      "single serial": single(args.steps, seed, noise_thread=False)[0]}
         if "vector" in parts:
             shared, main_cpu, worker_cpu = vector(args.steps, 2, True, seed)
             found |= {
@@ -370,6 +380,9 @@ def main() -> None:
         print(f"env.step, 1024x1024, {stars} stars (a pointing a round), noise on, scored: {spread(steps_ms)} ms = "
               f"{spread([r['frame step'] / r['frame floor'] for r in rounds])} x the floor "
               f"({spread([r['frame floor'] * 1e3 for r in rounds])} ms; goal <= 1.5)")
+        print(f"  its CPU time (both threads) {spread([r['frame cpu'] for r in rounds])} x the floor's; with "
+              f"noise_thread=False (the noise drawn after the render): {spread([r['serial ratio'] for r in rounds])} x "
+              "the floor")
     if "breakdown" in parts:
         print("env.step, 1024x1024, each part's time in floor draws: " + "; ".join(
             f"{label} {spread([r[f'part {label}'] for r in rounds])}" for *_, label in BREAKDOWN))
@@ -378,7 +391,8 @@ def main() -> None:
     if rounds:
         print(f"noise floor ({shape[0]}x{shape[1]} float32 normals): {spread([r['floor'] for r in rounds])} frames/s")
         print(f"single env, do-nothing action: {spread([r['single'] for r in rounds])} steps/s (goal >= 300) = "
-              f"{spread([r['floor'] / r['single'] for r in rounds])} x the floor's time")
+              f"{spread([r['floor'] / r['single'] for r in rounds])} x the floor's time; with noise_thread=False "
+              f"(as in a worker) {spread([r['single serial'] for r in rounds])} steps/s")
     if rounds and "vector" in parts:
         ceiling = [r["floor x2"] / r["floor"] for r in rounds]
         print(f"noise floor in 2 processes at once: {spread(ceiling)} x one process (the ceiling of a 2-worker "
@@ -388,7 +402,9 @@ def main() -> None:
                            ("bare", "bare workers (the floor)"), ("lean", "SharedMemoryVectorEnv"),
                            ("lean views", "SharedMemoryVectorEnv, no infos, views")):
             print(f"vector env, 2 workers, {label:<46} {np.median([r[key] for r in rounds]):6.1f} steps/s = "
-                  f"{spread([r[key] / r['single'] for r in rounds])} x single (goal >= 1.8)")
+                  f"{spread([r[key] / r['single'] for r in rounds])} x single, "
+                  f"{spread([r[key] / r['single serial'] for r in rounds])} x single without its noise thread "
+                  "(goal >= 1.8)")
         # Two cores run the workers' and the main process's CPU time per env step: no schedule beats 2 / their sum.
         cpu_bound = [2.0 / (r["main cpu"] + r["worker cpu"]) / r["single"] for r in rounds]
         print(f"CPU time per env step: single env {np.median([r['single cpu'] for r in rounds]) * 1e3:.2f} ms; in "

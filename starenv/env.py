@@ -48,6 +48,12 @@ OpenCV), the more so the longer a frame takes to simulate (``benchmarks/env_spee
 with and without it); in an async vector env, whose workers already keep the cores busy, it gains nothing.
 Nothing else may use ``env.sensor`` while a frame is being prefetched.
 
+Noise thread.  Within a step, each head's read-out noise (one float32 standard normal a pixel, the step's largest
+cost) is drawn on a second thread while the stars render (``noise_thread=True``); the frames are the same bit for bit
+as with ``noise_thread=False``, which draws it after the render.  The default (None) takes the thread where the
+process may run on two cores or more and is not a worker of a pool of processes (a vector env's or a parallel
+bench's), whose siblings already keep the cores busy (:func:`~starenv.sim.sensor.noise_thread_default`).
+
 Bounds.  Every box is finite so that ``observation_space.sample()`` works: times lie in ``[0, T]`` with ``T`` the
 episode's last mid-exposure time plus one frame period (``time_horizon_s``; an env stepped past truncation leaves
 it), gyro rates in ``[-GYRO_RATE_BOUND, GYRO_RATE_BOUND]`` rad/s (3600 deg/s; a bound on the space, the gyro model
@@ -112,6 +118,7 @@ class StarSensorEnv(gym.Env):
         overrides: dict[str, Any] | None = None,
         render_mode: str | None = None,
         prefetch: bool = False,
+        noise_thread: bool | None = None,
     ):
         if not isinstance(prefetch, bool):
             raise ValueError(f"prefetch must be True or False, got {prefetch!r}")
@@ -122,7 +129,7 @@ class StarSensorEnv(gym.Env):
                              f"got {type(scenario).__name__} {scenario!r}")
         self.scenario = scenario_mod.load(scenario, overrides)
         self.render_mode = render_mode
-        self.sensor = StarSensor(self.scenario)
+        self.sensor = StarSensor(self.scenario, noise_thread=noise_thread)
         sc = self.scenario
         self.metadata = {**self.metadata, "render_fps": max(1, int(round(sc.frame_rate_hz)))}
         n_heads = len(sc.heads)

@@ -1,3 +1,5 @@
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
@@ -92,6 +94,21 @@ def test_same_seed_same_frame():
     a = det.read_out(nothing(det.shape), 0.05, np.random.default_rng(7))
     b = det.read_out(nothing(det.shape), 0.05, np.random.default_rng(7))
     assert a.dtype == np.uint16 and np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("spec", [DetectorSpec(), DetectorSpec(read_noise_e=0.0, dark_current_e_per_s=300.0)],
+                         ids=["gaussian", "poisson"])
+def test_background_drawn_ahead_gives_the_same_frame(spec):
+    # draw_background on another thread, then read_out with its future: the frame read_out draws alone, bit for bit,
+    # on both the one-normal-a-pixel path and the exact Poisson path (stars, hot pixels and cosmic rays come after
+    # the background in the stream).
+    det = make(spec, 50.0)
+    star = signal(det.shape, (100, 104), (60, 66), 3000.0)
+    alone = det.read_out(star, 0.05, np.random.default_rng(7))
+    rng = np.random.default_rng(7)
+    with ThreadPoolExecutor(1) as executor:
+        ahead = det.read_out(star, 0.05, rng, background=executor.submit(det.draw_background, 0.05, rng))
+    np.testing.assert_array_equal(ahead, alone)
 
 
 @pytest.mark.parametrize(("field", "value"), [("adc_bits", 0), ("adc_bits", 17), ("read_noise_e", float("nan")),

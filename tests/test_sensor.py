@@ -4,13 +4,16 @@ scenarios against photometry, and star signal in the image against the truth."""
 from __future__ import annotations
 
 import math
+import threading
+from unittest import mock
 
 import numpy as np
 import pytest
 
 from starenv.scenario import load
 from starenv.sim.conventions import ARCSEC_PER_RAD, angle_between
-from starenv.sim.sensor import StarSensor
+from starenv.sim.imager import Detector
+from starenv.sim.sensor import StarSensor, noise_thread_default
 
 
 def quiet(n_heads: int) -> dict:
@@ -58,6 +61,40 @@ def test_same_seed_gives_bit_identical_frames():
             for ha, hb in zip(fa.heads, fb.heads, strict=True) if not ha.dropped and not hb.dropped]
     assert kept and all(not np.array_equal(x, y) for x, y in kept)
     assert not np.array_equal(first[-1].gyro.rate, other[-1].gyro.rate)
+
+
+@pytest.mark.parametrize("name", ["paper_004", "hot_sensor", "stress_tumble"])
+def test_noise_drawn_beside_the_render_gives_the_same_frames(name):
+    # Each head's background frame drawn on the noise thread while the stars render (counted: every head of every
+    # frame, none drawn on this thread) gives the frames drawn after the render bit for bit, with hot pixels, cosmic
+    # rays, drops, three heads (paper_004) and a varying dark current (hot_sensor): the draw neither moves within a
+    # head's noise stream nor races the read-out that uses it.
+    sc = load(name, {"drops.probability": 0.3})
+    serial = run(StarSensor(sc, noise_thread=False), 31, 6)
+    threads = []
+    draw = Detector.draw_background
+
+    def counted(*args, **kwargs):
+        threads.append(threading.current_thread() is threading.main_thread())
+        return draw(*args, **kwargs)
+
+    with mock.patch.object(Detector, "draw_background", autospec=True, side_effect=counted):
+        threaded = run(StarSensor(sc, noise_thread=True), 31, 6)
+    assert threads == [False] * (6 * len(sc.heads))
+    assert_identical(serial, threaded)
+
+
+def test_noise_thread_default_and_setting():
+    # The thread is taken by default only with two cores or more, outside a pool's worker process; a setting that is
+    # not a bool or None is refused by name.
+    with mock.patch("os.sched_getaffinity", return_value={0, 1}):
+        assert noise_thread_default()
+        with mock.patch("multiprocessing.parent_process", return_value=object()):
+            assert not noise_thread_default()
+    with mock.patch("os.sched_getaffinity", return_value={0}):
+        assert not noise_thread_default()
+    with pytest.raises(ValueError, match="noise_thread"):
+        StarSensor(load("paper_000"), noise_thread="yes")
 
 
 def test_appending_a_head_leaves_the_others_unchanged():

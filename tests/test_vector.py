@@ -2,6 +2,7 @@
 process: every observation, reward, flag and info must be the same bit for bit, episode ends included."""
 
 import os
+from unittest import mock
 
 import gymnasium as gym
 import numpy as np
@@ -141,6 +142,25 @@ def test_a_worker_that_dies_is_named_and_the_vector_env_still_closes():
 def test_a_worker_count_outside_one_to_num_envs_is_refused(workers):
     with pytest.raises(ValueError, match=r"workers must be an integer from 1 to num_envs \(2\)"):
         SharedMemoryVectorEnv.from_id("StarEnv/Scenario-v0", 2, workers=workers, **KWARGS)
+
+
+@pytest.mark.parametrize(("cpus", "num_envs", "workers", "thread"),
+                         [(4, 2, 2, True), (3, 2, 2, False), (16, 4, None, True), (6, 4, None, False),
+                          (2, 4, 1, True), (1, 2, 1, False)])
+def test_workers_draw_noise_on_a_second_thread_only_with_two_cores_each(cpus, num_envs, workers, thread):
+    # from_id gives each env a noise thread exactly when the machine has two cores for every worker (one worker per
+    # env up to the CPU count by default); an explicit setting is kept.
+    given = []
+
+    def init(self, env_fns, **options):  # (no workers started)
+        given.append(env_fns[0].kwargs["noise_thread"])
+        self.closed = True
+
+    with mock.patch("multiprocessing.cpu_count", return_value=cpus), \
+            mock.patch.object(SharedMemoryVectorEnv, "__init__", init):
+        SharedMemoryVectorEnv.from_id("StarEnv/Scenario-v0", num_envs, workers=workers)
+        SharedMemoryVectorEnv.from_id("StarEnv/Scenario-v0", num_envs, workers=workers, noise_thread=not thread)
+    assert given == [thread, not thread]
 
 
 def test_a_spawned_worker_builds_its_envs_from_the_id_and_gives_the_same_frames():

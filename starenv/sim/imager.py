@@ -14,6 +14,7 @@ cosmic rays are always exact Poisson / sampled draws on the few pixels they touc
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -151,16 +152,11 @@ class Detector:
             lam = lam[row, col]
         return peak_e / np.sqrt(peak_e + lam + self.spec.read_noise_e**2)
 
-    def read_out(self, signal: StarSignal, exposure_s: float, rng: np.random.Generator,
-                 dark_factor: float = 1.0) -> np.ndarray:
-        """A uint16 frame (height, width) in DN for the given star signal (expected e-) and exposure (s), the dark
-        current scaled by ``dark_factor``.
-
-        Works in DN from the start (``e / gain + bias``) so the full-frame passes are few; the full well
-        (``min(e, full_well)``) is the clip at ``full_well / gain + bias``.  With blooming the charge above the full
-        well spills along the columns first (:func:`bloom_columns`, on the charge with the read noise already in
-        it: a few read-noise sigmas of the full well).
-        """
+    def draw_background(self, exposure_s: float, rng: np.random.Generator, dark_factor: float = 1.0) -> np.ndarray:
+        """The read-out's frame before the stars, float32 DN (height, width), in the detector's scratch frame: the
+        background and dark electrons of an exposure (s), the dark current scaled by ``dark_factor``, with their shot
+        and read noise, through the gain and bias.  The first draws of a read-out from ``rng``: :meth:`read_out` makes
+        it, or takes it made ahead (on another thread while the stars render, numpy's draws releasing the GIL)."""
         spec = self.spec
         inv_gain = np.float32(1.0 / spec.gain_e_per_dn)
         lam, std = self.background(exposure_s, dark_factor)
@@ -175,6 +171,23 @@ class Detector:
                 dn += rng.normal(0.0, spec.read_noise_e, self.shape).astype(np.float32)
             dn *= inv_gain
             dn += np.float32(spec.bias_dn)
+        return dn
+
+    def read_out(self, signal: StarSignal, exposure_s: float, rng: np.random.Generator,
+                 dark_factor: float = 1.0, background: Future | None = None) -> np.ndarray:
+        """A uint16 frame (height, width) in DN for the given star signal (expected e-) and exposure (s), the dark
+        current scaled by ``dark_factor``; ``background``: its :meth:`draw_background` for this exposure and dark
+        factor, started ahead on ``rng`` (which must serve nothing else meanwhile; the frame is then the same bit for
+        bit), or None to draw it here.
+
+        Works in DN from the start (``e / gain + bias``) so the full-frame passes are few; the full well
+        (``min(e, full_well)``) is the clip at ``full_well / gain + bias``.  With blooming the charge above the full
+        well spills along the columns first (:func:`bloom_columns`, on the charge with the read noise already in
+        it: a few read-noise sigmas of the full well).
+        """
+        spec = self.spec
+        inv_gain = np.float32(1.0 / spec.gain_e_per_dn)
+        dn = self.draw_background(exposure_s, rng, dark_factor) if background is None else background.result()
         flat = dn.reshape(-1)
         if signal.shape != self.shape:
             raise ValueError(f"signal is for a {signal.shape} sensor, this one is {self.shape}")

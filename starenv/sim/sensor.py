@@ -12,6 +12,9 @@ pixel noise, each head's drop channel and the gyro, so adding a head does not ch
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -31,6 +34,25 @@ from starenv.sim.photometry import Photometry, StrayLight
 from starenv.sim.render import DETECTABLE_SNR, StarRenderer, StarTruth, still_image
 from starenv.sim.sky import CatalogFile, StarCatalog, load_catalog
 from starenv.sim.thermal import Thermal
+
+_noise_threads: dict[int, ThreadPoolExecutor] = {}  # per process id (a forked child cannot use its parent's)
+
+
+def noise_thread_default() -> bool:
+    """Whether a sensor left to choose (``noise_thread=None``) draws its read-out noise on a second thread: where this
+    process may run on two cores or more and is not a worker of a pool of processes (a multiprocessing child, such as
+    a vector env's or a bench's worker, whose siblings keep the cores busy)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return cores >= 2 and multiprocessing.parent_process() is None
+
+
+def _noise_thread() -> ThreadPoolExecutor:
+    """This process's thread that draws read-out noise while the stars render."""
+    pid = os.getpid()
+    if pid not in _noise_threads:
+        _noise_threads.clear()
+        _noise_threads[pid] = ThreadPoolExecutor(1, thread_name_prefix="starenv-noise")
+    return _noise_threads[pid]
 
 
 @dataclass
@@ -102,14 +124,19 @@ class Frame:
 class StarSensor:
     """Steps a :class:`SensorSpec` (e.g. a scenario): call :meth:`reset` with a seed, then :meth:`next_frame`."""
 
-    def __init__(self, scenario: SensorSpec, catalog: StarCatalog | None = None, readout_block: int = 1):
+    def __init__(self, scenario: SensorSpec, catalog: StarCatalog | None = None, readout_block: int = 1,
+                 noise_thread: bool | None = None):
         """``catalog``: the sky to render (default: the scenario's, Hp <= ``mag_limit`` at its ``epoch``); dataset
         generators pass an edited one (stars removed, false stars added, positions or magnitudes perturbed).
         ``readout_block`` > 1 delivers each frame as its ``readout_block``-px block means (float64 DN, drawn by
         :meth:`~starenv.sim.imager.Detector.read_out_binned` without the whole frame), for dataset generators whose
-        samples are binned frames."""
+        samples are binned frames.  ``noise_thread``: draw each frame's read-out noise on a second thread while its
+        stars render (the same frames bit for bit, sooner where a core is free); None: :func:`noise_thread_default`."""
+        if noise_thread is not None and not isinstance(noise_thread, bool):
+            raise ValueError(f"noise_thread must be True, False or None, got {noise_thread!r}")
         self.scenario = scenario
         self.readout_block = int(readout_block)
+        self.noise_thread = noise_thread_default() if noise_thread is None else noise_thread
         sky_file = scenario.sky_catalog
         if catalog is None:
             catalog = (load_catalog(scenario.mag_limit, scenario.epoch) if sky_file is None
@@ -159,27 +186,13 @@ class StarSensor:
         sc = self.scenario
         k = self.index
         t_start = k / sc.frame_rate_hz
-        heads = []
-        for h, (spec, renderer, detector, noise, drops, drop_rng) in enumerate(zip(
-            sc.heads, self.renderers, self.detectors, self.noise_rngs, self.drop_channels, self.drop_rngs, strict=True
-        )):
-            dark, camera = self._thermal_state(spec, renderer, t_start + 0.5 * sc.exposure_s)
-            rendered = renderer.render(sc.trajectory, t_start, sc.exposure_s, self.observer_velocity)
-            bodies = None
-            if self.bodies is not None:
-                bodies = self.bodies.head_view(spec, camera or spec.camera, sc.trajectory.attitude(rendered.t_mid),
-                                               rendered.t_mid, sc.exposure_s)
-                rendered.signal = add_signal(rendered.signal, bodies.index, bodies.electrons)
-                detector.set_background(self.backgrounds[h] + bodies.stray_e_per_px_s)
-            truth = rendered.truth
-            snr = detector.peak_snr(truth.peak_electrons, truth.xy_mid, sc.exposure_s, dark)
-            truth.detectable = snr >= DETECTABLE_SNR
-            image = (detector.read_out(rendered.signal, sc.exposure_s, noise, dark) if self.readout_block == 1 else
-                     detector.read_out_binned(rendered.signal, sc.exposure_s, noise, self.readout_block, dark))
-            dropped = drops.dropped(drop_rng)
-            if dropped:
-                image = np.zeros_like(image)
-            heads.append(HeadFrame(image, dropped, truth, rendered.t_mid, rendered.n_instants, camera, bodies))
+        states = [self._thermal_state(spec, renderer, t_start + 0.5 * sc.exposure_s)
+                  for spec, renderer in zip(sc.heads, self.renderers, strict=True)]
+        pending = self._backgrounds_ahead([dark for dark, _ in states])
+        try:
+            heads = self._head_frames(t_start, states, pending)
+        finally:  # (after an error, the draws end before anything else may use the streams)
+            wait([future for future in pending if future is not None])
         t_mid = heads[0].t_mid
         first = sc.heads[0]
         _, window_end = row_window(t_start, sc.exposure_s, first.detector.line_time_s, first.camera.height - 1)
@@ -200,6 +213,45 @@ class StarSensor:
             gyro_bias=self.gyro.bias_rad_s,
             observer_velocity_m_s=velocity,
         )
+
+    def _backgrounds_ahead(self, darks: list[float]) -> list[Future | None]:
+        """Per head, its read-out's background frame (:meth:`~starenv.sim.imager.Detector.draw_background`: the
+        noise, the frame's largest cost) started on the noise thread, to be drawn while the stars render; None where
+        the read-out draws it itself: no noise thread, a binned read-out, or bright bodies (whose stray light sets the
+        background only after the render).  The frames are the same bit for bit either way: a head's noise stream
+        serves its read-out alone."""
+        if not self.noise_thread or self.readout_block != 1 or self.bodies is not None:
+            return [None] * len(darks)
+        executor, exposure = _noise_thread(), self.scenario.exposure_s
+        return [executor.submit(detector.draw_background, exposure, rng, dark)
+                for detector, rng, dark in zip(self.detectors, self.noise_rngs, darks, strict=True)]
+
+    def _head_frames(self, t_start: float, states: list[tuple], pending: list[Future | None]) -> list[HeadFrame]:
+        """Each head's frame opening at ``t_start`` (s): its stars rendered and read out, given its dark-current
+        factor and camera (:meth:`_thermal_state`) and its background frame being drawn (:meth:`_backgrounds_ahead`)."""
+        sc = self.scenario
+        heads = []
+        for h, (spec, renderer, detector, noise, drops, drop_rng, (dark, camera), drawn) in enumerate(zip(
+            sc.heads, self.renderers, self.detectors, self.noise_rngs, self.drop_channels, self.drop_rngs, states,
+            pending, strict=True
+        )):
+            rendered = renderer.render(sc.trajectory, t_start, sc.exposure_s, self.observer_velocity)
+            bodies = None
+            if self.bodies is not None:
+                bodies = self.bodies.head_view(spec, camera or spec.camera, sc.trajectory.attitude(rendered.t_mid),
+                                               rendered.t_mid, sc.exposure_s)
+                rendered.signal = add_signal(rendered.signal, bodies.index, bodies.electrons)
+                detector.set_background(self.backgrounds[h] + bodies.stray_e_per_px_s)
+            truth = rendered.truth
+            snr = detector.peak_snr(truth.peak_electrons, truth.xy_mid, sc.exposure_s, dark)
+            truth.detectable = snr >= DETECTABLE_SNR
+            image = (detector.read_out(rendered.signal, sc.exposure_s, noise, dark, drawn) if self.readout_block == 1
+                     else detector.read_out_binned(rendered.signal, sc.exposure_s, noise, self.readout_block, dark))
+            dropped = drops.dropped(drop_rng)
+            if dropped:
+                image = np.zeros_like(image)
+            heads.append(HeadFrame(image, dropped, truth, rendered.t_mid, rendered.n_instants, camera, bodies))
+        return heads
 
     @staticmethod
     def _thermal_state(spec: HeadSpec, renderer: StarRenderer, t: float) -> tuple[float, Camera | None]:

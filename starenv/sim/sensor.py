@@ -31,7 +31,7 @@ from starenv.sim.imager import Detector, DetectorSpec
 from starenv.sim.motion import Trajectory
 from starenv.sim.optics import Camera
 from starenv.sim.photometry import Photometry, StrayLight
-from starenv.sim.render import DETECTABLE_SNR, StarRenderer, StarTruth, still_image
+from starenv.sim.render import DETECTABLE_SNR, RenderedFrame, StarRenderer, StarTruth, still_image
 from starenv.sim.sky import CatalogFile, StarCatalog, load_catalog
 from starenv.sim.thermal import Thermal
 
@@ -189,17 +189,13 @@ class StarSensor:
         states = [self._thermal_state(spec, renderer, t_start + 0.5 * sc.exposure_s)
                   for spec, renderer in zip(sc.heads, self.renderers, strict=True)]
         pending = self._backgrounds_ahead([dark for dark, _ in states])
-        try:
-            heads = self._head_frames(t_start, states, pending)
+        try:  # the stars and the gyro while the noise is drawn, then the read-outs
+            rendered = [self._rendered_head(h, t_start, dark, camera) for h, (dark, camera) in enumerate(states)]
+            gyro = self._gyro_samples(t_start)
+            heads = [self._head_frame(h, *rendered[h], *states[h], pending[h]) for h in range(len(states))]
         finally:  # (after an error, the draws end before anything else may use the streams)
             wait([future for future in pending if future is not None])
         t_mid = heads[0].t_mid
-        first = sc.heads[0]
-        _, window_end = row_window(t_start, sc.exposure_s, first.detector.line_time_s, first.camera.height - 1)
-        # a motion whose rate jumps between samples (an attitude file) gives each gyro interval's exact mean
-        mean_rate = getattr(sc.trajectory.motion, "mean_body_rate", None)
-        gyro = (self.gyro.sample_until(sc.trajectory.body_rate, window_end) if mean_rate is None
-                else self.gyro.sample_until(sc.trajectory.body_rate, window_end, mean_rate))
         self.index += 1
         velocity = np.zeros(3) if self.observer_velocity is None else np.array(self.observer_velocity(t_mid))
         return Frame(
@@ -214,6 +210,17 @@ class StarSensor:
             observer_velocity_m_s=velocity,
         )
 
+    def _gyro_samples(self, t_start: float) -> GyroSamples:
+        """The gyro samples delivered with the frame opening at ``t_start`` (s): up to the end of head 0's exposure
+        window."""
+        sc = self.scenario
+        first = sc.heads[0]
+        _, window_end = row_window(t_start, sc.exposure_s, first.detector.line_time_s, first.camera.height - 1)
+        # a motion whose rate jumps between samples (an attitude file) gives each gyro interval's exact mean
+        mean_rate = getattr(sc.trajectory.motion, "mean_body_rate", None)
+        return (self.gyro.sample_until(sc.trajectory.body_rate, window_end) if mean_rate is None
+                else self.gyro.sample_until(sc.trajectory.body_rate, window_end, mean_rate))
+
     def _backgrounds_ahead(self, darks: list[float]) -> list[Future | None]:
         """Per head, its read-out's background frame (:meth:`~starenv.sim.imager.Detector.draw_background`: the
         noise, the frame's largest cost) started on the noise thread, to be drawn while the stars render; None where
@@ -226,32 +233,36 @@ class StarSensor:
         return [executor.submit(detector.draw_background, exposure, rng, dark)
                 for detector, rng, dark in zip(self.detectors, self.noise_rngs, darks, strict=True)]
 
-    def _head_frames(self, t_start: float, states: list[tuple], pending: list[Future | None]) -> list[HeadFrame]:
-        """Each head's frame opening at ``t_start`` (s): its stars rendered and read out, given its dark-current
-        factor and camera (:meth:`_thermal_state`) and its background frame being drawn (:meth:`_backgrounds_ahead`)."""
+    def _rendered_head(self, h: int, t_start: float, dark: float,
+                       camera: Camera | None) -> tuple[RenderedFrame, HeadBodies | None]:
+        """Head ``h``'s stars rendered for the frame opening at ``t_start`` (s), with the bright bodies it sees (None
+        without ``[sky] bodies``) and each star's detectability, given its dark-current factor and camera
+        (:meth:`_thermal_state`): (the rendered frame, the bodies)."""
         sc = self.scenario
-        heads = []
-        for h, (spec, renderer, detector, noise, drops, drop_rng, (dark, camera), drawn) in enumerate(zip(
-            sc.heads, self.renderers, self.detectors, self.noise_rngs, self.drop_channels, self.drop_rngs, states,
-            pending, strict=True
-        )):
-            rendered = renderer.render(sc.trajectory, t_start, sc.exposure_s, self.observer_velocity)
-            bodies = None
-            if self.bodies is not None:
-                bodies = self.bodies.head_view(spec, camera or spec.camera, sc.trajectory.attitude(rendered.t_mid),
-                                               rendered.t_mid, sc.exposure_s)
-                rendered.signal = add_signal(rendered.signal, bodies.index, bodies.electrons)
-                detector.set_background(self.backgrounds[h] + bodies.stray_e_per_px_s)
-            truth = rendered.truth
-            snr = detector.peak_snr(truth.peak_electrons, truth.xy_mid, sc.exposure_s, dark)
-            truth.detectable = snr >= DETECTABLE_SNR
-            image = (detector.read_out(rendered.signal, sc.exposure_s, noise, dark, drawn) if self.readout_block == 1
-                     else detector.read_out_binned(rendered.signal, sc.exposure_s, noise, self.readout_block, dark))
-            dropped = drops.dropped(drop_rng)
-            if dropped:
-                image = np.zeros_like(image)
-            heads.append(HeadFrame(image, dropped, truth, rendered.t_mid, rendered.n_instants, camera, bodies))
-        return heads
+        spec, detector = sc.heads[h], self.detectors[h]
+        rendered = self.renderers[h].render(sc.trajectory, t_start, sc.exposure_s, self.observer_velocity)
+        bodies = None
+        if self.bodies is not None:
+            bodies = self.bodies.head_view(spec, camera or spec.camera, sc.trajectory.attitude(rendered.t_mid),
+                                           rendered.t_mid, sc.exposure_s)
+            rendered.signal = add_signal(rendered.signal, bodies.index, bodies.electrons)
+            detector.set_background(self.backgrounds[h] + bodies.stray_e_per_px_s)
+        truth = rendered.truth
+        truth.detectable = detector.peak_snr(truth.peak_electrons, truth.xy_mid, sc.exposure_s, dark) >= DETECTABLE_SNR
+        return rendered, bodies
+
+    def _head_frame(self, h: int, rendered: RenderedFrame, bodies: HeadBodies | None, dark: float,
+                    camera: Camera | None, drawn: Future | None) -> HeadFrame:
+        """Head ``h``'s frame: its rendered signal read out (on its background frame being drawn, ``drawn``, from
+        :meth:`_backgrounds_ahead`) and passed through its drop channel."""
+        sc = self.scenario
+        detector, noise = self.detectors[h], self.noise_rngs[h]
+        image = (detector.read_out(rendered.signal, sc.exposure_s, noise, dark, drawn) if self.readout_block == 1
+                 else detector.read_out_binned(rendered.signal, sc.exposure_s, noise, self.readout_block, dark))
+        dropped = self.drop_channels[h].dropped(self.drop_rngs[h])
+        if dropped:
+            image = np.zeros_like(image)
+        return HeadFrame(image, dropped, rendered.truth, rendered.t_mid, rendered.n_instants, camera, bodies)
 
     @staticmethod
     def _thermal_state(spec: HeadSpec, renderer: StarRenderer, t: float) -> tuple[float, Camera | None]:

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 Executor = Callable[[Iterable[tuple]], Iterator[tuple[Any, Any]]]
+POOL_WORKER_ENV = "STARENV_POOL_WORKER"  # set ("1") in the environment of the Ray workers that run the tasks
 
 
 def local_executor(fn: Callable, key: Callable[[tuple], Any], jobs: int) -> Executor:
@@ -39,7 +40,8 @@ def local_executor(fn: Callable, key: Callable[[tuple], Any], jobs: int) -> Exec
 def ray_executor(fn: Callable, key: Callable[[tuple], Any], address: str | None, options: dict | None = None,
                  error: type[Exception] = ValueError) -> Executor:
     """``fn`` as Ray tasks on the cluster at ``address`` (None: a local Ray instance started here), with this
-    package on the workers' path and the catalogue cache folder passed on; ``error`` is raised when ray is missing."""
+    package on the workers' path, the catalogue cache folder passed on and ``POOL_WORKER_ENV`` set (a worker's
+    sensors then draw their noise on its own thread); ``error`` is raised when ray is missing."""
     try:
         import ray
     except ImportError as exc:
@@ -49,7 +51,8 @@ def ray_executor(fn: Callable, key: Callable[[tuple], Any], address: str | None,
     def submit_all(tasks):
         if not ray.is_initialized():
             root = str(Path(__file__).resolve().parent.parent)
-            env = {"PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
+            env = {"PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])]),
+                   POOL_WORKER_ENV: "1"}
             if "STARENV_CACHE_DIR" in os.environ:
                 env["STARENV_CACHE_DIR"] = os.environ["STARENV_CACHE_DIR"]
             ray.init(address=address or None, include_dashboard=False, runtime_env={"env_vars": env},

@@ -22,7 +22,9 @@ from starenv.bench.spec import BENCH_DIR, BenchError, Sweep, load_bench, parse_b
 from starenv.cli import main
 from starenv.env import StarSensorEnv
 from starenv.episode import run_episode
+from starenv.parallel import ray_executor
 from starenv.scenario import SCENARIO_DIR
+from starenv.sim.sensor import noise_thread_default
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -255,6 +257,8 @@ def test_ray_matches_local_processes_bit_for_bit(tmp_path):
     options = {"num_cpus": 2, "object_store_memory": 80 * 1024**2}  # the runner starts a local instance
     try:
         remote = run_bench(bench, tmp_path / "ray", use_ray=True, ray_options=options, progress=False, log=_quiet)
+        # its workers are marked as a pool's: their sensors draw the noise on their own thread
+        assert list(ray_executor(noise_thread_default, len, None)([()])) == [(0, False)]
     finally:
         ray.shutdown()
     assert len(local) == len(remote) == 2

@@ -4,12 +4,14 @@ scenarios against photometry, and star signal in the image against the truth."""
 from __future__ import annotations
 
 import math
+import os
 import threading
 from unittest import mock
 
 import numpy as np
 import pytest
 
+from starenv.parallel import POOL_WORKER_ENV
 from starenv.scenario import load
 from starenv.sim.conventions import ARCSEC_PER_RAD, angle_between
 from starenv.sim.imager import Detector
@@ -85,12 +87,15 @@ def test_noise_drawn_beside_the_render_gives_the_same_frames(name):
 
 
 def test_noise_thread_default_and_setting():
-    # The thread is taken by default only with two cores or more, outside a pool's worker process; a setting that is
-    # not a bool or None is refused by name.
-    with mock.patch("os.sched_getaffinity", return_value={0, 1}):
+    # The thread is taken by default only with two cores or more, outside a pool's worker process (a multiprocessing
+    # child, or a Ray worker marked by the runners); a setting that is not a bool or None is refused by name.
+    with mock.patch("os.sched_getaffinity", return_value={0, 1}), mock.patch.dict(os.environ):
+        os.environ.pop(POOL_WORKER_ENV, None)
         assert noise_thread_default()
         with mock.patch("multiprocessing.parent_process", return_value=object()):
             assert not noise_thread_default()
+        os.environ[POOL_WORKER_ENV] = "1"
+        assert not noise_thread_default()
     with mock.patch("os.sched_getaffinity", return_value={0}):
         assert not noise_thread_default()
     with pytest.raises(ValueError, match="noise_thread"):

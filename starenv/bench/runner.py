@@ -48,15 +48,13 @@ class RunResult:
     wall_s: float
 
 
-def execute(run: RunSpec, recording: str | None = None, recorder: str | None = None,
-            noise_thread: bool | None = None) -> RunResult:
-    """Run one episode; with a ``recorder`` (``MCAP_RECORDER``) it is recorded to the ``recording`` path.
-    ``noise_thread``: the env's (False where runs go in parallel: they keep the cores busy)."""
+def execute(run: RunSpec, recording: str | None = None, recorder: str | None = None) -> RunResult:
+    """Run one episode; with a ``recorder`` (``MCAP_RECORDER``) it is recorded to the ``recording`` path."""
     from starenv.env import StarSensorEnv
     from starenv.episode import run_episode
 
     scenario = run.load_scenario()
-    env = StarSensorEnv(scenario.data, noise_thread=noise_thread)
+    env = StarSensorEnv(scenario.data)
     pipeline = run.pipeline.build(scenario, run.trust)
     observers = []
     if recorder is not None and recording is not None:
@@ -255,9 +253,7 @@ def _run_bench(bench, out: Path, jobs, ray_address, use_ray, ray_options, progre
     done_steps = sum(r.steps for r in reused)
     bar = tqdm(total=len(bench.runs), initial=len(reused), unit="run", disable=not progress, file=sys.stderr,
                desc=bench.name, postfix={"steps": f"{done_steps}/{total_steps}"})
-    noise_thread = None if jobs <= 1 and not use_ray else False
-    tasks = [(r, str(recording_file(out, r)) if bench.recorder and r.record else None, bench.recorder, noise_thread)
-             for r in todo]
+    tasks = [(r, str(recording_file(out, r)) if bench.recorder and r.record else None, bench.recorder) for r in todo]
     try:
         for run, result in executor(tasks):
             write_run(run_file(out, run), run, result)

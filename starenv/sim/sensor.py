@@ -21,6 +21,7 @@ from typing import Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from starenv.parallel import POOL_WORKER_ENV
 from starenv.sim.attitude_files import GyroRecord, GyroReplay
 from starenv.sim.bodies import Baffle, HeadBodies, SkyBodies, SkySpec, add_signal
 from starenv.sim.conventions import ARCSEC, frame_span_s, row_window
@@ -40,10 +41,11 @@ _noise_threads: dict[int, ThreadPoolExecutor] = {}  # per process id (a forked c
 
 def noise_thread_default() -> bool:
     """Whether a sensor left to choose (``noise_thread=None``) draws its read-out noise on a second thread: where this
-    process may run on two cores or more and is not a worker of a pool of processes (a multiprocessing child, such as
-    a vector env's or a bench's worker, whose siblings keep the cores busy)."""
+    process may run on two cores or more and is not a worker of a pool of processes, whose siblings keep the cores
+    busy: a multiprocessing child (a vector env's worker, a local pool's) or a Ray worker of the bench or dataset
+    runners (``POOL_WORKER_ENV`` set)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return cores >= 2 and multiprocessing.parent_process() is None
+    return cores >= 2 and multiprocessing.parent_process() is None and not os.environ.get(POOL_WORKER_ENV)
 
 
 def _noise_thread() -> ThreadPoolExecutor:

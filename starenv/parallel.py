@@ -18,6 +18,11 @@ Executor = Callable[[Iterable[tuple]], Iterator[tuple[Any, Any]]]
 POOL_WORKER_ENV = "STARENV_POOL_WORKER"  # set ("1") in the environment of the Ray workers that run the tasks
 
 
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity where the platform tells it, else the CPU count."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def local_executor(fn: Callable, key: Callable[[tuple], Any], jobs: int) -> Executor:
     """``fn`` in this process (``jobs`` <= 1) or in ``jobs`` spawned worker processes."""
 

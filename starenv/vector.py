@@ -48,6 +48,8 @@ from gymnasium.vector.utils import (
 )
 from gymnasium.vector.vector_env import AutoresetMode
 
+from starenv.parallel import usable_cores
+
 __all__ = ["SharedMemoryVectorEnv", "make_vector_env"]
 
 
@@ -235,13 +237,14 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
         """``num_envs`` copies of ``gym.make(env_id, **env_kwargs)``.  ``env_id`` is a registered id such as
         ``"StarEnv/Paper000-v0"``; ``gym.make`` imports the module of a ``"module:Env"`` id, so do not pass ids read
         from untrusted files.  Unless ``env_kwargs`` sets it, each env draws its noise on a second thread
-        (``noise_thread``) where the machine has two cores for every worker, and on its worker's own thread
-        otherwise (the same results bit for bit)."""
+        (``noise_thread``) where this process may use two cores for every worker
+        (:func:`~starenv.parallel.usable_cores`), and on its worker's own thread otherwise (the same results bit for
+        bit)."""
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if "noise_thread" not in env_kwargs and (workers is None or isinstance(workers, int)):
-            cpus = multiprocessing.cpu_count()
-            env_kwargs["noise_thread"] = cpus >= 2 * (min(num_envs, cpus) if workers is None else workers)
+            used = min(num_envs, multiprocessing.cpu_count()) if workers is None else workers  # as __init__ makes
+            env_kwargs["noise_thread"] = usable_cores() >= 2 * used
         return cls([_Maker(env_id, env_kwargs)] * num_envs, workers=workers, infos=infos, copy=copy,
                    context=context, timeout_s=timeout_s)
 

@@ -148,8 +148,8 @@ def test_a_worker_count_outside_one_to_num_envs_is_refused(workers):
                          [(4, 2, 2, True), (3, 2, 2, False), (16, 4, None, True), (6, 4, None, False),
                           (2, 4, 1, True), (1, 2, 1, False)])
 def test_workers_draw_noise_on_a_second_thread_only_with_two_cores_each(cpus, num_envs, workers, thread):
-    # from_id gives each env a noise thread exactly when the machine has two cores for every worker (one worker per
-    # env up to the CPU count by default); an explicit setting is kept.
+    # from_id gives each env a noise thread exactly when the process may use two cores for every worker (one worker
+    # per env up to the CPU count by default); an explicit setting is kept.
     given = []
 
     def init(self, env_fns, **options):  # (no workers started)
@@ -157,6 +157,7 @@ def test_workers_draw_noise_on_a_second_thread_only_with_two_cores_each(cpus, nu
         self.closed = True
 
     with mock.patch("multiprocessing.cpu_count", return_value=cpus), \
+            mock.patch("os.sched_getaffinity", return_value=set(range(cpus))), \
             mock.patch.object(SharedMemoryVectorEnv, "__init__", init):
         SharedMemoryVectorEnv.from_id("StarEnv/Scenario-v0", num_envs, workers=workers)
         SharedMemoryVectorEnv.from_id("StarEnv/Scenario-v0", num_envs, workers=workers, noise_thread=not thread)

@@ -21,7 +21,7 @@ from typing import Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from starenv.parallel import POOL_WORKER_ENV
+from starenv.parallel import POOL_WORKER_ENV, usable_cores
 from starenv.sim.attitude_files import GyroRecord, GyroReplay
 from starenv.sim.bodies import Baffle, HeadBodies, SkyBodies, SkySpec, add_signal
 from starenv.sim.conventions import ARCSEC, frame_span_s, row_window
@@ -44,8 +44,7 @@ def noise_thread_default() -> bool:
     process may run on two cores or more and is not a worker of a pool of processes, whose siblings keep the cores
     busy: a multiprocessing child (a vector env's worker, a local pool's) or a Ray worker of the bench or dataset
     runners (``POOL_WORKER_ENV`` set)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return cores >= 2 and multiprocessing.parent_process() is None and not os.environ.get(POOL_WORKER_ENV)
+    return usable_cores() >= 2 and multiprocessing.parent_process() is None and not os.environ.get(POOL_WORKER_ENV)
 
 
 def _noise_thread() -> ThreadPoolExecutor:

@@ -16,9 +16,11 @@ from starenv.agents.blocks import (
     background,
     background_maps,
     component_peaks,
+    components,
     components_above,
     frame_background,
     frame_span_s,
+    pixels_above,
     row_window,
     streak_candidates,
     wahba_svd,
@@ -155,6 +157,17 @@ def test_background_maps_of_one_tile_are_the_frame_background():
     np.testing.assert_allclose(noise_map, noise, rtol=1e-6)
 
 
+def test_the_noise_map_stays_at_the_quantisation_floor_where_its_extrapolation_would_cross_it():
+    # A noiseless first column of tiles (its noise at the floor) beside tiles of 8 DN: extrapolated linearly across
+    # the border, the map would fall below zero there.  Its tiles are cut at the floor first, and every map value
+    # mixes tile values with weights in [0, 1]: none below the floor, to float32 rounding.
+    sigma = np.where(np.arange(SIZE) < 32, 0.0, 8.0)
+    frame = (LEVEL_DN + np.random.default_rng(9).normal(0.0, 1.0, (SIZE, SIZE)) * sigma).astype(np.float32)
+    _, noise_map = background_maps(frame, tile_px=32)
+    assert noise_map.min() >= np.float32(background.QUANTISATION_NOISE_DN) * (1 - 1e-6)
+    assert noise_map[:, :16].max() < 1.0 and noise_map[:, 48:].min() > 6.0
+
+
 def test_background_maps_follow_a_plane_within_the_tiles_standard_error():
     # Tiles of 32 px: 256 level samples each, a standard error of 3 / 16 DN.  A map value is a bilinear mix of tile
     # values, or a linear extrapolation from two (weights up to 1.5 and -0.5: at most twice a tile's error), of a
@@ -261,6 +274,35 @@ def test_components_above_are_scipys_8_connected_labels_in_raster_order():
     within = np.flatnonzero((area >= 3) & (area <= 40))
     np.testing.assert_array_equal(found.kept, within[within > 0])
     np.testing.assert_array_equal(found.pixel, np.flatnonzero(signal > limit))
+
+
+@settings(max_examples=200, deadline=None)
+@given(height=st.integers(1, 9), width=st.integers(1, 9), fill=st.floats(0.05, 0.7), seed=st.integers(0, 2**32 - 1))
+def test_components_of_any_pixel_set_are_scipys_8_connected_labels(height, width, fill, seed):
+    # Narrow frames and dense sets put pixels on both borders, where the flat index of the next row's first pixel
+    # follows the last pixel of a row: a neighbour search in flat indices must not join them.
+    mask = np.random.default_rng(seed).random((height, width)) < fill
+    found = components(np.flatnonzero(mask), mask.shape)
+    labels, count = ndimage.label(mask, structure=np.ones((3, 3)))
+    np.testing.assert_array_equal(found.labels, labels)
+    assert found.count == count + 1
+    assert found.label.dtype == np.int32
+
+
+@settings(max_examples=100, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spread=st.floats(1.0, 20.0), factor=st.floats(0.1, 10.0))
+def test_pixels_above_a_noise_map_are_those_of_the_map_of_products(seed, spread, factor):
+    # The products in float32, as a limit map holds them; a noise that varies by up to 20x across the frame puts
+    # many pixels above the least noise's limit that the map's own limit then turns away.
+    rng = np.random.default_rng(seed)
+    noise = (rng.uniform(1.0, spread, (40, 60))).astype(np.float32)
+    signal = (rng.normal(0.0, 1.0, noise.shape) * noise * 3.0).astype(np.float32)
+    scale = np.float32(factor)
+    limit = np.multiply(noise, scale)
+    # signal values placed on the limits themselves and just above them
+    signal.ravel()[:50] = limit.ravel()[:50]
+    signal.ravel()[50:100] = np.nextafter(limit.ravel()[50:100], np.float32(np.inf))
+    np.testing.assert_array_equal(pixels_above(signal, noise, scale), np.flatnonzero(signal > limit))
 
 
 def test_component_peaks_are_scipys_maxima_the_last_in_raster_order_on_a_tie():

@@ -9,8 +9,9 @@ every frame it may take a :class:`Workspace` whose arrays it reuses (the results
   that needs an attitude from matched vector pairs.
 * :func:`frame_background`, :func:`background_maps`, :func:`clipped_mean_std` (:mod:`.background`): background
   level and noise of a frame (sigma-clipped statistics; a scalar over the whole frame, or tiled maps).
-* :func:`components_above`, :func:`component_peaks`, :func:`streak_candidates` (:mod:`.candidates`): candidate stars
-  and streaks, the connected pixels where a matched filter stands above its noise, and their peaks.
+* :func:`components_above`, :func:`components`, :func:`pixels_above`, :func:`component_peaks`,
+  :func:`streak_candidates` (:mod:`.candidates`): candidate stars and streaks, the connected pixels where a matched
+  filter stands above its noise, and their peaks.
 * :func:`run_starts` (:mod:`.runs`): where each run of equal values of a grouped (e.g. sorted) array starts; the
   detector's deblending and the tracking identifier's candidate choice group by it.
 * :func:`row_window`, :func:`frame_span_s`: the exposure window of an image row under a rolling shutter (they live in
@@ -18,11 +19,19 @@ every frame it may take a :class:`Workspace` whose arrays it reuses (the results
 """
 
 from starenv.agents.blocks.background import background_maps, clipped_mean_std, frame_background
-from starenv.agents.blocks.candidates import Components, component_peaks, components_above, streak_candidates
+from starenv.agents.blocks.candidates import (
+    Components,
+    component_peaks,
+    components,
+    components_above,
+    pixels_above,
+    streak_candidates,
+)
 from starenv.agents.blocks.runs import run_starts
 from starenv.agents.blocks.wahba import wahba_svd
 from starenv.agents.blocks.workspace import Workspace
 from starenv.sim.conventions import frame_span_s, row_window
 
-__all__ = ["Components", "Workspace", "background_maps", "clipped_mean_std", "component_peaks", "components_above",
-           "frame_background", "frame_span_s", "row_window", "run_starts", "streak_candidates", "wahba_svd"]
+__all__ = ["Components", "Workspace", "background_maps", "clipped_mean_std", "component_peaks", "components",
+           "components_above", "frame_background", "frame_span_s", "pixels_above", "row_window", "run_starts",
+           "streak_candidates", "wahba_svd"]

@@ -149,7 +149,7 @@ def _tile_statistics(tiles: np.ndarray, clip_sigma: float) -> tuple[np.ndarray, 
     kept = count / level_sample.shape[1]
     clipped = _clipped_rows(level_sample)
     if clipped.any():
-        whole = tiles.transpose(0, 2, 1, 3).reshape(ny * nx, -1)[clipped]
+        whole = tiles.transpose(0, 2, 1, 3).reshape(ny * nx, -1)[clipped].astype(np.float32, copy=False)
         centre[clipped], scale[clipped], kept[clipped] = censored_mean_std(whole, clip_sigma)
     return centre, scale, kept
 
@@ -204,8 +204,8 @@ def background_maps(data: np.ndarray, tile_px: int = 32, clip_sigma: float = 3.0
 
     Parameters
     ----------
-    data : (H, W) ndarray of float32
-        The frame (DN).
+    data : (H, W) ndarray
+        The frame (DN), integer or float; its values are taken as float32.
     tile_px : int
         Tile size (px): the frame is cut into ``round(H / tile_px)`` by ``round(W / tile_px)`` tiles (at least one),
         the last row and column of tiles ending at the border and overlapping the ones before.  Smaller tiles follow
@@ -219,12 +219,12 @@ def background_maps(data: np.ndarray, tile_px: int = 32, clip_sigma: float = 3.0
     -------
     level, noise : (H, W) ndarray of float32
         Each tile's level and noise as in :func:`frame_background` (DN), at its centre, interpolated bilinearly between
-        the tile centres and extrapolated linearly to the border; the noise at least ``QUANTISATION_NOISE_DN``.  A
-        tile whose clipping keeps less than ``MIN_TILE_KEPT`` of its level sample (a large star, a bright trail)
-        takes the nearest good tile's values.
+        the tile centres and extrapolated linearly to the border; the noise at least ``QUANTISATION_NOISE_DN`` (to
+        float32 rounding), its extrapolated tiles cut there first.  A tile whose clipping keeps less than
+        ``MIN_TILE_KEPT`` of its level sample (a large star, a bright trail) takes the nearest good tile's values.
     """
     work = Workspace(data.shape) if workspace is None else workspace
-    data_shape = height, width = data.shape
+    height, width = data.shape
     ny, nx = max(1, round(height / tile_px)), max(1, round(width / tile_px))
     th, tw = -(-height // ny), -(-width // nx)
     # The last row and column of tiles end at the image border, overlapping the ones before.
@@ -248,11 +248,16 @@ def background_maps(data: np.ndarray, tile_px: int = 32, clip_sigma: float = 3.0
             index[axis] = n - 1
             grid[tuple(index)] = before + (last - before) * (step / (size - (n - 1) * step))
     grid = np.pad(grid, ((1, 1), (1, 1), (0, 0)), mode="reflect", reflect_type="odd").astype(np.float32)
-    # The level a view into its padded map (a row-strided array; numpy and OpenCV take it without a copy).
-    padded = ((ny + 2) * th, (nx + 2) * tw)
+    # The noise map is a weighted mean of its grid's values with weights in [0, 1]: at least the floor if they are.
+    np.maximum(grid[..., 1], np.float32(QUANTISATION_NOISE_DN), out=grid[..., 1])
+    # Interpolated onto the padded frame ((ny + 2) th by (nx + 2) tw) one axis at a time, as cv2.resize does it
+    # (the same values): the columns first, on the grid's rows only, cut to the frame's; then the rows.  Each map is
+    # then a run of whole rows of its array, contiguous.
     level, noise = (
-        cv2.resize(grid[..., k], padded[::-1], dst=work.array(name, np.float32, padded),
-                   interpolation=cv2.INTER_LINEAR)[th : th + height, tw : tw + width]
+        cv2.resize(np.ascontiguousarray(cv2.resize(grid[..., k], ((nx + 2) * tw, ny + 2),
+                                                   interpolation=cv2.INTER_LINEAR)[:, tw : tw + width]),
+                   (width, (ny + 2) * th), dst=work.array(name, np.float32, ((ny + 2) * th, width)),
+                   interpolation=cv2.INTER_LINEAR)[th : th + height]
         for k, name in enumerate(("level_map", "noise_map"))
     )
-    return level, np.maximum(noise, np.float32(QUANTISATION_NOISE_DN), out=work.array("noise", np.float32, data_shape))
+    return level, noise

@@ -7,6 +7,8 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from starenv.agents.blocks.workspace import Workspace
 
@@ -16,12 +18,19 @@ POINT_TEST_MAX_OVERLAP = 0.4  # the point test runs where a trail gives the spot
 class Components(NamedTuple):
     """The 8-connected components of the pixels above a limit (:func:`components_above`)."""
 
-    labels: np.ndarray  # (H, W) int32: 0 below the limit, 1 .. count - 1 the components (raster order of first pixel)
+    shape: tuple[int, int]  # (H, W) of the image
     count: int  # labels in use, the background's included
     pixel: np.ndarray  # (p,) flat indices (row-major) of the pixels above the limit, ascending
-    label: np.ndarray  # (p,) int32: each such pixel's component
+    label: np.ndarray  # (p,) int32: each such pixel's component, 1 .. count - 1 (raster order of first pixel)
     area: np.ndarray  # (count,) pixels of each component (area[0]: none, the background's are not counted)
     kept: np.ndarray  # (k,) ascending labels of the components within the area limits
+
+    @property
+    def labels(self) -> np.ndarray:
+        """The label image (H, W) of int32: 0 below the limit, each pixel's ``label`` above it."""
+        labels = np.zeros(self.shape, np.int32)
+        labels.ravel()[self.pixel] = self.label
+        return labels
 
 
 def components_above(signal: np.ndarray, limit, min_area_px: int = 1, max_area_px: int | None = None,
@@ -37,24 +46,85 @@ def components_above(signal: np.ndarray, limit, min_area_px: int = 1, max_area_p
     min_area_px, max_area_px : int
         Components of fewer or more pixels are not ``kept`` (None: no upper limit).
     workspace : Workspace, optional
-        Arrays kept between calls on frames of one shape; ``labels`` is then a view of its array.
+        Arrays kept between calls on frames of one shape.
 
     Returns
     -------
     Components
-        Labels, pixels and areas; a pixel belongs to a component when it is above the limit and one of its 8
-        neighbours does.  Labels follow the raster order (row-major) of each component's first pixel.
+        As :func:`components` gives them for those pixels.
     """
     above = np.greater(signal, limit, out=None if workspace is None else workspace.array("above", bool))
-    labels = np.empty(above.shape, np.int32) if workspace is None else workspace.array("labels", np.int32)
-    count, _ = cv2.connectedComponentsWithAlgorithm(above.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_SAUF, labels)
-    pixel = np.flatnonzero(above.ravel())
-    label = labels.ravel()[pixel]
+    return components(np.flatnonzero(above.ravel()), above.shape, min_area_px, max_area_px)
+
+
+def components(pixel: np.ndarray, shape: tuple[int, int], min_area_px: int = 1,
+               max_area_px: int | None = None) -> Components:
+    """Connected components of a set of pixels.
+
+    Parameters
+    ----------
+    pixel : (p,) int ndarray
+        Flat indices (row-major, ascending) of the pixels, e.g. those above a limit (:func:`pixels_above`).
+    shape : (int, int)
+        The image's (H, W).
+    min_area_px, max_area_px : int
+        Components of fewer or more pixels are not ``kept`` (None: no upper limit).
+
+    Returns
+    -------
+    Components
+        Labels, pixels and areas; two pixels are in one component when a chain of the pixels, each one of the 8
+        neighbours of the one before, joins them.  Labels follow the raster order (row-major) of each component's
+        first pixel.
+    """
+    count, label = _label_pixels(pixel, shape[1])
     area = np.bincount(label, minlength=count)
     within = area[1:] >= min_area_px
     if max_area_px is not None:
         within &= area[1:] <= max_area_px
-    return Components(labels, count, pixel, label, area, np.flatnonzero(within) + 1)
+    return Components(shape, count, pixel, label, area, np.flatnonzero(within) + 1)
+
+
+def pixels_above(signal: np.ndarray, noise: np.ndarray, factor: float,
+                 workspace: Workspace | None = None) -> np.ndarray:
+    """Flat indices (row-major, ascending) of the pixels where ``signal`` (H, W) exceeds ``factor`` times ``noise``
+    (H, W), the product in ``noise``'s float type as a map of it would hold it.
+
+    Only a pixel above ``factor`` times the least noise can pass: those are found first, in one pass over
+    ``signal`` against a number, and tested one by one; the map of the products is never made.  That is the fast
+    way where the noise varies little across the frame (most stars above the limit, few background pixels).
+    """
+    floor = noise.min() * np.float32(factor)  # the least product: rounding keeps the products' order
+    above = np.greater(signal, floor, out=None if workspace is None else workspace.array("above", bool))
+    candidate = np.flatnonzero(above.ravel())
+    return candidate[signal.ravel()[candidate] > noise.ravel()[candidate] * np.float32(factor)]
+
+
+def _label_pixels(pixel: np.ndarray, width: int) -> tuple[int, np.ndarray]:
+    """8-connected components of the pixels at flat indices ``pixel`` (ascending, row-major) of an image ``width``
+    px wide: the labels in use (with 0, none's) and each pixel's label (p,) int32, 1 .. count - 1 in the raster
+    order of each component's first pixel.  A graph of the pixels alone, each joined to its forward neighbours
+    present (right, below left, below, below right; itself where one is missing): it costs the pixels found, not
+    the frame."""
+    n = len(pixel)
+    if n == 0:
+        return 1, np.zeros(0, np.int32)
+    neighbour = pixel[:, None] + np.array([1, width - 1, width, width + 1])  # (p, 4)
+    at = np.minimum(np.searchsorted(pixel, neighbour), n - 1)
+    joined = pixel[at] == neighbour
+    column = pixel % width
+    joined[:, [0, 3]] &= (column < width - 1)[:, None]  # not across the right border
+    joined[:, 1] &= column > 0  # nor the left
+    own = np.arange(n)
+    graph = csr_matrix((np.ones(4 * n), np.where(joined, at, own[:, None]).ravel(), np.arange(0, 4 * n + 1, 4)),
+                       shape=(n, n))
+    count, component = connected_components(graph, directed=False)
+    # Numbered by their first pixel (the graph's numbering follows it too, but does not promise to).
+    first = np.full(count, n)
+    np.minimum.at(first, component, own)
+    rank = np.empty(count, np.int32)
+    rank[np.argsort(first)] = np.arange(1, count + 1, dtype=np.int32)
+    return count + 1, rank[component]
 
 
 def component_peaks(label: np.ndarray, value: np.ndarray, pixel: np.ndarray, count: int) -> tuple[np.ndarray,

@@ -11,7 +11,8 @@ the iterations of a Gaussian fit made for all stars at once.
    a cosmic-ray hit or track, alone or on a star), takes that median; so do its neighbours that stand out likewise.
 3. Detection: the cleaned background-subtracted image, smoothed by a Gaussian matched to the PSF (optional), is
    thresholded at ``threshold_sigma`` times its local noise; 8-connected components of ``min_area_px`` to
-   ``max_area_px`` pixels are the candidates (:func:`~starenv.agents.blocks.components_above`).
+   ``max_area_px`` pixels are the candidates (:func:`~starenv.agents.blocks.pixels_above`,
+   :func:`~starenv.agents.blocks.components`).
 4. Deblending: a blob holding several maxima of the detection image is split, each pixel following its steepest
    ascent to a maximum; a maximum whose rise above the highest saddle towards a brighter one is below the detection
    threshold or below ``deblend_contrast`` times its height is merged into that brighter one.
@@ -51,7 +52,7 @@ from scipy.special import erf, ndtr
 
 from starenv import checks
 from starenv.agents.base import StarMeasurements
-from starenv.agents.blocks import Workspace, background_maps, component_peaks, components_above, run_starts
+from starenv.agents.blocks import Workspace, background_maps, component_peaks, components, pixels_above, run_starts
 from starenv.sim.optics import Camera
 
 METHODS = ("cog", "iwcog", "gaussian")
@@ -256,20 +257,26 @@ class CentroidDetector:
         psf = self._psf(camera)
         height, width = image.shape
         work = self._workspace(image.shape)
-        data = work.array("data", np.float32)
-        np.copyto(data, image, casting="unsafe")
-        level, noise = background_maps(data, self.tile_px, self.clip_sigma, work)
-        resid = np.subtract(data, level, out=data)
+        level, noise = background_maps(image, self.tile_px, self.clip_sigma, work)
+        resid = np.subtract(image, level, out=work.array("data", np.float32), dtype=np.float32, casting="unsafe")
         removed = self._clean_spikes(resid, noise, psf, work) if self.reject_sharp else None
         smooth = work.array("smooth", np.float32)
         zones = self._zones(camera)
+        signal = smooth if self.matched_filter else resid
         if zones is None:
             cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, dst=smooth, borderType=cv2.BORDER_REFLECT)
-            limit = np.multiply(noise, np.float32(self.threshold_sigma * psf.filter_noise), out=work.array("limit"))
+            factor = np.float32(self.threshold_sigma * psf.filter_noise)
+            above = pixels_above(signal, noise, factor, work)
+
+            def limit_at(index):
+                return noise.ravel()[index] * factor
         else:
             limit = self._zoned_filter(resid, noise, zones, smooth, work.array("limit"))
-        signal = smooth if self.matched_filter else resid
-        found = components_above(signal, limit, self.min_area_px, self.max_area_px, work)
+            above = np.flatnonzero(np.greater(signal, limit, out=work.array("above", bool)).ravel())
+
+            def limit_at(index):
+                return limit.ravel()[index]
+        found = components(above, image.shape, self.min_area_px, self.max_area_px)
         n_label, pixel, component, kept = found.count, found.pixel, found.label, found.kept
         if len(kept) == 0:
             return StarMeasurements(np.zeros((0, 2)))
@@ -284,7 +291,8 @@ class CentroidDetector:
         core.fill(0)
         core.ravel()[pixel] = lut[component]
         pixel = pixel[lut[component] > 0]
-        n = self._deblend(core, pixel, signal, limit, len(kept), work) if self.deblend_contrast < 1.0 else len(kept)
+        n = (self._deblend(core, pixel, signal, limit_at(pixel), len(kept), work) if self.deblend_contrast < 1.0
+             else len(kept))
         grown = core
         if m := psf.margin_px:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
@@ -409,8 +417,7 @@ class CentroidDetector:
             """Significance (noise sigmas) of each pixel's excess over what its 3 x 3 median allows."""
             return (flat[index] * gain - median) / (noise_flat[index] * unit)
 
-        scaled = np.multiply(resid, np.float32(gain / (SPIKE_SIGMA * unit)), out=work.array("scratch"))
-        candidate = np.flatnonzero(np.greater(scaled, noise, out=work.array("above", bool)).ravel())
+        candidate = pixels_above(resid, noise, np.float32(SPIKE_SIGMA * unit / gain), work)
         median = np.median(flat[_box(candidate, resid.shape)], axis=0)
         is_spike = excess(candidate, median) > SPIKE_SIGMA
         first = candidate[is_spike]
@@ -429,8 +436,8 @@ class CentroidDetector:
     def _deblend(self, core: np.ndarray, pixel: np.ndarray, signal: np.ndarray, limit: np.ndarray, n: int,
                  work: Workspace) -> int:
         """Split blobs of ``core`` (labels 1 .. n, 0 elsewhere; ``pixel``: the sorted flat indices of its blob
-        pixels) holding several significant maxima of ``signal``; relabels ``core`` in place and returns the new
-        number of blobs."""
+        pixels, ``limit`` the detection limit at each) holding several significant maxima of ``signal``; relabels
+        ``core`` in place and returns the new number of blobs."""
         height, width = core.shape
         core_flat, value = core.ravel(), signal.ravel()
         label = core_flat[pixel].astype(np.intp)
@@ -469,7 +476,7 @@ class CentroidDetector:
         pairs = pairs[order[run_starts(key)]]
         pairs = pairs[np.argsort(-pairs[:, 2], kind="stable")]
         height_at = value[pixel]
-        rise_needed = np.maximum(limit.ravel()[pixel], self.deblend_contrast * height_at)
+        rise_needed = np.maximum(limit, self.deblend_contrast * height_at)
         a, b = pairs[:, 0].astype(np.intp), pairs[:, 1].astype(np.intp)
 
         # Highest saddles first: the lower of the two maxima merges into the higher unless it rises enough.  A

@@ -52,7 +52,15 @@ from scipy.special import erf, ndtr
 
 from starenv import checks
 from starenv.agents.base import StarMeasurements
-from starenv.agents.blocks import Workspace, background_maps, component_peaks, components, pixels_above, run_starts
+from starenv.agents.blocks import (
+    Workspace,
+    background_maps,
+    component_peaks,
+    components,
+    components_above,
+    pixels_above,
+    run_starts,
+)
 from starenv.sim.optics import Camera
 
 METHODS = ("cog", "iwcog", "gaussian")
@@ -265,18 +273,12 @@ class CentroidDetector:
         signal = smooth if self.matched_filter else resid
         if zones is None:
             cv2.sepFilter2D(resid, cv2.CV_32F, psf.kernel, psf.kernel, dst=smooth, borderType=cv2.BORDER_REFLECT)
-            factor = np.float32(self.threshold_sigma * psf.filter_noise)
-            above = pixels_above(signal, noise, factor, work)
-
-            def limit_at(index):
-                return noise.ravel()[index] * factor
+            factor = np.float32(self.threshold_sigma * psf.filter_noise)  # the limit: factor times the noise
+            found = components(pixels_above(signal, noise, factor, work), image.shape, self.min_area_px,
+                               self.max_area_px)
         else:
             limit = self._zoned_filter(resid, noise, zones, smooth, work.array("limit"))
-            above = np.flatnonzero(np.greater(signal, limit, out=work.array("above", bool)).ravel())
-
-            def limit_at(index):
-                return limit.ravel()[index]
-        found = components(above, image.shape, self.min_area_px, self.max_area_px)
+            found = components_above(signal, limit, self.min_area_px, self.max_area_px, work)
         n_label, pixel, component, kept = found.count, found.pixel, found.label, found.kept
         if len(kept) == 0:
             return StarMeasurements(np.zeros((0, 2)))
@@ -291,8 +293,10 @@ class CentroidDetector:
         core.fill(0)
         core.ravel()[pixel] = lut[component]
         pixel = pixel[lut[component] > 0]
-        n = (self._deblend(core, pixel, signal, limit_at(pixel), len(kept), work) if self.deblend_contrast < 1.0
-             else len(kept))
+        n = len(kept)
+        if self.deblend_contrast < 1.0:
+            limit_there = noise.ravel()[pixel] * factor if zones is None else limit.ravel()[pixel]
+            n = self._deblend(core, pixel, signal, limit_there, n, work)
         grown = core
         if m := psf.margin_px:
             disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))

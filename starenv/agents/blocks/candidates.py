@@ -13,6 +13,8 @@ from scipy.sparse.csgraph import connected_components
 from starenv.agents.blocks.workspace import Workspace
 
 POINT_TEST_MAX_OVERLAP = 0.4  # the point test runs where a trail gives the spot filter at most this share of its own
+# pixels_above tests the pixels above the least noise's limit one by one while they are at most this share of all
+MAX_CANDIDATE_SHARE = 0.05
 
 
 class Components(NamedTuple):
@@ -91,13 +93,17 @@ def pixels_above(signal: np.ndarray, noise: np.ndarray, factor: float,
     (H, W), the product in ``noise``'s float type as a map of it would hold it.
 
     Only a pixel above ``factor`` times the least noise can pass: those are found first, in one pass over
-    ``signal`` against a number, and tested one by one; the map of the products is never made.  That is the fast
-    way where the noise varies little across the frame (most stars above the limit, few background pixels).
+    ``signal`` against a number, and tested one by one; the map of the products is never made.  Where more than
+    ``MAX_CANDIDATE_SHARE`` of the pixels pass that first test (a noise far from uniform: a saturated bright body
+    holds the quantisation floor's), the products are compared pixel by pixel instead.  Either way the same pixels.
     """
-    floor = noise.min() * np.float32(factor)  # the least product: rounding keeps the products' order
-    above = np.greater(signal, floor, out=None if workspace is None else workspace.array("above", bool))
+    factor = np.float32(factor)
+    above = np.greater(signal, noise.min() * factor,  # the least product: rounding keeps the products' order
+                       out=None if workspace is None else workspace.array("above", bool))
+    if np.count_nonzero(above) > MAX_CANDIDATE_SHARE * above.size:
+        return np.flatnonzero(np.greater(signal, noise * factor, out=above).ravel())
     candidate = np.flatnonzero(above.ravel())
-    return candidate[signal.ravel()[candidate] > noise.ravel()[candidate] * np.float32(factor)]
+    return candidate[signal.ravel()[candidate] > noise.ravel()[candidate] * factor]
 
 
 def _label_pixels(pixel: np.ndarray, width: int) -> tuple[int, np.ndarray]:

@@ -293,7 +293,8 @@ def test_components_of_any_pixel_set_are_scipys_8_connected_labels(height, width
 @given(seed=st.integers(0, 2**32 - 1), spread=st.floats(1.0, 20.0), factor=st.floats(0.1, 10.0))
 def test_pixels_above_a_noise_map_are_those_of_the_map_of_products(seed, spread, factor):
     # The products in float32, as a limit map holds them; a noise that varies by up to 20x across the frame puts
-    # many pixels above the least noise's limit that the map's own limit then turns away.
+    # many pixels above the least noise's limit that the map's own limit then turns away.  Small factors put more
+    # than MAX_CANDIDATE_SHARE of the pixels above it (compared pixel by pixel), large ones few (tested one by one).
     rng = np.random.default_rng(seed)
     noise = (rng.uniform(1.0, spread, (40, 60))).astype(np.float32)
     signal = (rng.normal(0.0, 1.0, noise.shape) * noise * 3.0).astype(np.float32)

@@ -290,14 +290,16 @@ def test_components_of_any_pixel_set_are_scipys_8_connected_labels(height, width
 
 
 @settings(max_examples=100, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), spread=st.floats(1.0, 20.0), factor=st.floats(0.1, 10.0))
-def test_pixels_above_a_noise_map_are_those_of_the_map_of_products(seed, spread, factor):
-    # The products in float32, as a limit map holds them; a noise that varies by up to 20x across the frame puts
-    # many pixels above the least noise's limit that the map's own limit then turns away.  Small factors put more
-    # than MAX_CANDIDATE_SHARE of the pixels above it (compared pixel by pixel), large ones few (tested one by one).
+@given(seed=st.integers(0, 2**32 - 1), level=st.floats(1.0, 20.0), factor=st.floats(0.5, 8.0), low=st.booleans())
+def test_pixels_above_a_noise_map_are_those_of_the_map_of_products(seed, level, factor, low):
+    # The products in float32, as a limit map holds them.  A noise within 20 % of ``level``, or with a patch at the
+    # quantisation floor (a saturated bright body's): the least noise's limit lets few pixels through (tested one by
+    # one) or more than MAX_CANDIDATE_SHARE of them (compared pixel by pixel); many it lets through the map turns away.
     rng = np.random.default_rng(seed)
-    noise = (rng.uniform(1.0, spread, (40, 60))).astype(np.float32)
-    signal = (rng.normal(0.0, 1.0, noise.shape) * noise * 3.0).astype(np.float32)
+    noise = rng.uniform(0.8 * level, level, (40, 60)).astype(np.float32)
+    if low:
+        noise[:10, :10] = background.QUANTISATION_NOISE_DN
+    signal = (rng.normal(0.0, 1.0, noise.shape) * noise).astype(np.float32)
     scale = np.float32(factor)
     limit = np.multiply(noise, scale)
     # signal values placed on the limits themselves and just above them

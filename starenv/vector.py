@@ -168,6 +168,11 @@ def _worker(env_fns: list[Callable[[], gym.Env]], first: int, shared: _Shared, p
             pipe.send(("error", (first + k, type(error).__name__, str(error), traceback.format_exc())))
 
 
+def _workers(num_envs: int, workers: int | None) -> int | None:
+    """The worker processes of ``num_envs`` envs: ``workers``, or by default one per env up to the number of CPUs."""
+    return min(num_envs, multiprocessing.cpu_count()) if workers is None else workers
+
+
 class SharedMemoryVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` envs stepped by ``workers`` processes through shared memory (see the module docstring).
 
@@ -198,8 +203,7 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
             if not isinstance(flag, bool):
                 raise ValueError(f"{name} must be True or False, got {flag!r}")
         self.num_envs = len(env_fns)
-        cpus = multiprocessing.cpu_count()
-        workers = min(self.num_envs, cpus) if workers is None else workers
+        workers = _workers(self.num_envs, workers)
         if not isinstance(workers, int) or isinstance(workers, bool) or not 1 <= workers <= self.num_envs:
             raise ValueError(f"workers must be an integer from 1 to num_envs ({self.num_envs}), got {workers!r}")
         self.env_fns, self.infos, self.copy = list(env_fns), infos, copy
@@ -243,8 +247,7 @@ class SharedMemoryVectorEnv(gym.vector.VectorEnv):
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if "noise_thread" not in env_kwargs and (workers is None or isinstance(workers, int)):
-            used = min(num_envs, multiprocessing.cpu_count()) if workers is None else workers  # as __init__ makes
-            env_kwargs["noise_thread"] = usable_cores() >= 2 * used
+            env_kwargs["noise_thread"] = usable_cores() >= 2 * _workers(num_envs, workers)
         return cls([_Maker(env_id, env_kwargs)] * num_envs, workers=workers, infos=infos, copy=copy,
                    context=context, timeout_s=timeout_s)
 

@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.base import Identifier, StarMeasurements
+from starenv.agents.blocks import wahba_svd
 from starenv.agents.identify.database import build_patterns, pattern_keys
 from starenv.agents.identify.geometry import CLAIM_SIGMAS, mask_pairs, pattern_edges, sole_per_star
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
@@ -558,8 +559,9 @@ def test_lost_in_space_labels_out_to_the_measured_centroid_scatter():
     # With 1 px of centroid noise about one detection in 90 lies beyond the 3 px match radius of its star; the
     # labelling radius widens to 4 standard deviations of the scatter measured on the matches (at most 4.5 px), so
     # most of those detections are labelled too (without the widening only the few that the attitude's own error
-    # brings within 3 px), and none wrongly.  The fixed radius alone would leave
-    # exp(-4.5) ~ 1.1 % of the stars unlabelled, a rate under 0.989: the 0.993 bound fails without the widening.
+    # brings within 3 px), and none wrongly.  The fixed radius alone would leave exp(-4.5) ~ 1.1 % of the stars
+    # unlabelled, a rate under 0.989: the 0.991 bound fails without the widening.  (Stars with a neighbour within
+    # CLAIM_SIGMAS sigmas are left unlabelled either way, a few tenths of a percent here.)
     catalog = load_catalog(6.5, EPOCH)
     identifier = LostInSpaceIdentifier()
     identifier.reset([NARROW], catalog)
@@ -580,7 +582,7 @@ def test_lost_in_space_labels_out_to_the_measured_centroid_scatter():
     assert beyond >= 8
     assert beyond_labelled >= 0.75 * beyond
     assert wrong == 0
-    assert correct >= 0.993 * present
+    assert correct >= 0.991 * present
 
 
 def test_the_one_quad_lookup_finds_what_the_vectorised_lookup_finds(lost_in_space, catalog):
@@ -642,12 +644,21 @@ def test_the_sky_cells_list_every_star_a_cone_about_their_points_holds(lost_in_s
         assert np.count_nonzero(database_units @ direction >= identifier._cos_half_field) <= in_field[cell]
 
 
-def test_sole_per_star_drops_every_row_of_a_star_with_two_detections_near_it():
-    # Rows 0-3 paired with stars 0, 1, 2, 2; star 1 has a second detection near it (unpaired), star 2 two paired.
-    rows, stars = sole_per_star(np.arange(4), np.array([0, 1, 2, 2]), np.array([1, 2, 2]))
+def test_sole_per_star_drops_every_row_of_a_star_with_two_detections_near_it_or_of_two_stars():
+    # Rows 0-3 paired with stars 0, 1, 2, 2; star 1 has a second detection near it (row 4, unpaired), star 2 two paired.
+    near = np.zeros((5, 3), dtype=bool)
+    near[[0, 1, 2, 3, 4], [0, 1, 2, 2, 1]] = True
+    rows, stars = sole_per_star(np.arange(4), np.array([0, 1, 2, 2, 0]), near)
     assert rows.tolist() == [0] and stars.tolist() == [0]
-    rows, stars = sole_per_star(np.array([0, 2]), np.array([4, 8, 6, 0, 0, 0, 0, 0, 0]), np.ones(9, dtype=int))
+    # Rows 0 and 2 paired with stars 4 and 6, each alone near its star; row 2 also near star 5 (beyond its pairing
+    # radius, within the claim's): which of the two made it is a guess.
+    near = np.zeros((3, 9), dtype=bool)
+    near[[0, 1, 2], [4, 8, 6]] = True
+    rows, stars = sole_per_star(np.array([0, 2]), np.array([4, 8, 6]), near)
     assert rows.tolist() == [0, 2] and stars.tolist() == [4, 6]
+    near[2, 5] = True
+    rows, stars = sole_per_star(np.array([0, 2]), np.array([4, 8, 6]), near)
+    assert rows.tolist() == [0] and stars.tolist() == [4]
 
 
 @settings(max_examples=200, deadline=None)
@@ -728,6 +739,41 @@ def test_lost_in_space_at_1_px_never_gives_a_wrong_id(lost_in_space, catalog, na
         attitude = Rotation.random(random_state=rng)
         stars, truth = scene([camera], catalog, attitude, rng, noise_px=1.0)
         assert tally(identifier.identify(stars, [camera], None), truth)[2] == 0
+
+
+# A centroid set of benchmarks/identify_peers.py (seed 3700, set 3312: 12 deg, Hp <= 6.5 at epoch 2025, 1 px noise per
+# axis), brightest first: position (px), magnitude (Hp), HIP number.  Its four brightest but one (rows 0, 1, 2, 5) are
+# HIP 53740, 54682, 54204 and 53252; the database holds the pattern 53740, 54682, 54255, 53252, with HIP 54255 (row 7,
+# 12 px from row 2) in the place of 54204, and the noise brings its edges within the tolerance.
+NEIGHBOUR_SET = [
+    ((742.206, 850.625), 4.246, 53740), ((593.118, 420.678), 4.478, 54682), ((224.138, 273.564), 5.009, 54204),
+    ((1011.006, 452.259), 5.179, 55598), ((51.235, 926.672), 5.198, 51718), ((542.055, 844.973), 5.336, 53252),
+    ((212.644, 181.027), 5.46, 54477), ((231.517, 264.679), 5.671, 54255), ((702.799, 57.26), 5.799, 56078),
+    ((866.35, 961.989), 5.961, 53723), ((892.996, 638.265), 6.11, 54742), ((103.295, 946.227), 6.206, 51795),
+    ((219.195, 338.917), 6.291, 53963), ((979.36, 214.278), 6.353, 56245), ((81.978, 85.334), 6.49, 54430),
+]
+
+
+def test_a_pattern_holding_a_neighbour_in_place_of_a_star_gives_no_wrong_id():
+    # The four-star fit of that pattern turns about it to share the 12 px between the four: all four land within
+    # the match radius, stars near the pattern match, the far ones do not, and row 2 would take 54255's id.  The
+    # trap is checked to be there (the pattern in the database, its fit within the radius); then every id given
+    # must be right, and the three right stars' attitude labels all but a few.
+    identifier = LostInSpaceIdentifier()
+    identifier.reset([NARROW], load_catalog(6.5, 2025.0))
+    xy = np.array([row[0] for row in NEIGHBOUR_SET])
+    flux = 10.0 ** (-0.4 * np.array([row[1] for row in NEIGHBOUR_SET]))
+    hip = np.array([row[2] for row in NEIGHBOUR_SET])
+    db = identifier.database
+    trap = [int(np.flatnonzero(db.hip == h)[0]) for h in (53740, 54682, 54255, 53252)]
+    assert np.any(np.all(np.sort(db.patterns, axis=1) == sorted(trap), axis=1))
+    body = NARROW.unproject(xy[[0, 1, 2, 5]])
+    fitted = db.unit[trap] @ wahba_svd(body, db.unit[trap]).T
+    miss_px = np.degrees(np.arccos(np.minimum(np.sum(fitted * body, axis=1), 1.0))) / np.degrees(1.0 / NARROW.fx)
+    assert np.all(miss_px < identifier.match_radius_px)
+    ids = identifier.identify([StarMeasurements(xy, flux)], [NARROW])[0].catalog_id
+    assert np.all((ids == -1) | (ids == hip))
+    assert np.count_nonzero(ids == hip) >= len(hip) - 2
 
 
 def test_a_star_keeps_its_own_centroid_within_claim_sigmas_but_for_1e_4():

@@ -16,7 +16,7 @@ from starenv.sim.optics import Camera
 MERGE_PX = 2.0  # a star closer than this (px, coarsest head) to a brighter one is taken as part of it
 # A centroid with Gaussian noise of sigma per axis lies beyond r of its star with probability exp(-r^2 / (2 sigma^2))
 # (Rayleigh): beyond this many sigmas with probability 1e-4.  A star with two detections within it cannot tell which
-# is its own (:func:`sole_per_star`).
+# is its own, nor a detection with two stars within it which one made it (:func:`sole_per_star`).
 CLAIM_SIGMAS = math.sqrt(2.0 * math.log(1e4))
 EDGE_FROM, EDGE_TO = np.triu_indices(4, 1)  # the six edges of a pattern: 01, 02, 03, 12, 13, 23
 STAR_ORDERS = np.array(list(itertools.permutations(range(4))))  # (24, 4)
@@ -94,10 +94,13 @@ def mask_pairs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def sole_per_star(rows: np.ndarray, star: np.ndarray, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``rows`` (ascending) and their stars, of rows paired with star ``star[row]``, less every row whose star has
-    two detections or more near it (``near``: per star, the detections within ``CLAIM_SIGMAS`` centroid sigmas of
-    it): two detections by one star are a star the catalogue merged into it or left out and the star, and which one
-    is the star's is a guess (with centroid noise the nearer is often the other)."""
-    alone = near[star[rows]] <= 1
+    two detections or more near it, and every row with two stars or more near it (``near`` (rows, stars): the pairs
+    within ``CLAIM_SIGMAS`` centroid sigmas).  Two detections by one star are a star the catalogue merged into it
+    or left out and the star; two stars by one detection, a pair the sensor saw as one spot, or a star whose centroid
+    noise took its detection past the pairing radius while its neighbour's lies within.  Which one is whose is then a
+    guess (with centroid noise the nearer is often the other)."""
+    counts = near.astype(np.float64)  # (the counts as products with ones: summing booleans costs several times more)
+    alone = (np.ones(len(counts)).dot(counts)[star[rows]] <= 1.0) & (counts.dot(np.ones(counts.shape[1]))[rows] <= 1.0)
     return rows[alone], star[rows[alone]]
 
 

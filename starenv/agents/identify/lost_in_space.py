@@ -24,24 +24,27 @@ Method
     the centroid noise (``centroid_noise_px``) at the coarsest plate scale; it fixes each ratio's tolerance and so the
     bins probed (at most two a ratio, 32 keys a pattern).  A catalogue pattern found there must also match the largest
     edge and then all six edges in angle (the scale is known) under one of the 24 star orders.  Each such hypothesis
-    is solved for the attitude (SVD solution of Wahba's problem) and verified as in tetra3/cedar-solve: with ``n``
-    detections in all heads, ``m`` of them within ``match_radius_px`` of a catalogue star (pattern stars included)
-    and ``p`` the chance that a random detection lands that close to one (local catalogue density times the match
-    area), the probability of a false match is ``P(X >= m - 2)`` for ``X ~ Binomial(n, p)``; hypotheses below
-    ``match_threshold`` are verified (a frame's chance of accepting a wrong attitude is then at most the number of
-    hypotheses it tests times ``match_threshold``, by the union bound).  Of the verified hypotheses of the first
-    breadth-first step that has any, the one matching most detections wins; when one head has four detections or more
-    (the common case), the quads of the first two steps (15 quads) are looked up one at a time instead, in plain
-    numbers (a few quads cost less so than as arrays, and the search stops at the first verified one), and the first
-    verified one wins (two verified attitudes in one step would mean a false match).  Matching and refining the
-    attitude then alternate, the search widened by the attitude's uncertainty (a pattern in one small field leaves
-    the roll about it loose, which moves the stars of the other heads), and every detection within the labelling
-    radius of a catalogue star is labelled (a detection with two catalogue stars within its radius, or a star with
-    two detections within ``CLAIM_SIGMAS`` centroid sigmas, is left unidentified: which one made it is a guess; of
-    two detections further apart the closest is the star's).  The labelling radius is
-    the match radius, widened when the scatter of the matched detections about their stars (measured under the
-    refined attitude, on 8 pairs or more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1 px of
-    noise per axis, the 3 px default alone would leave about 1 % of the stars unlabelled (``exp(-4.5)``).  Verifying,
+    is solved for the attitude (SVD solution of Wahba's problem); when it matches fewer than half the detections, so
+    are its stars three at a time, and the fit matching most detections stands for it (a pattern can hold a
+    neighbour of one detected star in its place: its fit then turns about the pattern, the stars near it still
+    match and the neighbour's id goes to the star's detection).  The attitude is verified as in tetra3/cedar-solve:
+    with ``n`` detections in all heads, ``m`` of them within ``match_radius_px`` of a catalogue star (pattern stars
+    included) and ``p`` the chance that a random detection lands that close to one (local catalogue density times
+    the match area), the probability of a false match is ``P(X >= m - 2)`` for ``X ~ Binomial(n, p)``; hypotheses
+    below ``match_threshold`` are verified (a frame's chance of accepting a wrong attitude is then at most the number
+    of attitudes it tests, three-star fits included, times ``match_threshold``, by the union bound).  Of the verified
+    hypotheses of the first breadth-first step that has any, the one matching most detections wins; when one head
+    has four detections or more (the common case), the quads of the first two steps (15 quads) are looked up one at
+    a time instead, in plain numbers (a few quads cost less so than as arrays, and the search stops at the first
+    verified one), and the first verified one wins (two verified attitudes in one step would mean a false match).
+    Matching and refining the attitude then alternate, the search widened by the attitude's uncertainty (a pattern in
+    one small field leaves the roll about it loose, which moves the stars of the other heads), and every detection
+    within the labelling radius of a catalogue star is labelled (a detection with two catalogue stars within its radius
+    or within ``CLAIM_SIGMAS`` centroid sigmas, or a star with two detections that close, is left unidentified: which
+    one made it is a guess; of two detections further apart the closest is the star's).  The labelling radius is the
+    match radius, widened when the scatter of the matched detections about their stars (measured under the refined
+    attitude, on 8 pairs or more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1 px of noise per
+    axis, the 3 px default alone would leave about 1 % of the stars unlabelled (``exp(-4.5)``).  Verifying,
     refining and labelling compare the detections with the labelling stars (the database's first) of a cone about
     each head's boresight, found once for all three, by brute force (both sets are small), rather than through a k-d
     tree query a detection; for one head the cone's stars are those listed for the sky cell of its boresight (the sky
@@ -115,6 +118,7 @@ _GRID_MARGIN_PX = 2.0  # margin of the cell lists beyond the heads' corners (coa
 _BIN_STEPS = (np.arange(32)[:, None] >> np.arange(5)) & 1  # (32, 5): step s probes the bin above for the set bits of s
 _PROBES = np.all(_BIN_STEPS[None] <= _BIN_STEPS[:, None], axis=2)  # (32, 32): [w, s] step s within the bits w
 _BITS = 1 << np.arange(5)  # bit of each ratio in a bin step
+_THREE_OF_FOUR = [[k for k in range(4) if k != left_out] for left_out in range(4)]  # a quad less each star
 _SIGNS = np.array([-1.0, 1.0])[:, None, None]
 _ONES = np.ones(3)
 _ORDER_GRAM = (4 * STAR_ORDERS[:, EDGE_FROM] + STAR_ORDERS[:, EDGE_TO]).T.copy()  # (6, 24) Gram entry of edge, order
@@ -364,8 +368,9 @@ class LostInSpaceIdentifier:
                 if len(set(detections)) < len(detections):  # some with two or more: left out
                     alone = np.bincount(detection, minlength=len(ids))[detection] == 1
                     detection, star = detection[alone], star[alone]
-                # Each star's closest detection; a star with a second one within CLAIM_SIGMAS of the centroid
-                # scatter (measured on those closest pairs, in match radii squared per axis) labels neither.
+                # Each star's closest detection; a star with a second detection within CLAIM_SIGMAS of the
+                # centroid scatter (measured on those closest pairs, in match radii squared per axis) labels neither,
+                # and a detection with a second star that close is not labelled.
                 dot = np.empty(len(ids))
                 dot.fill(-np.inf)
                 dot[detection] = dots[detection, star]
@@ -377,7 +382,7 @@ class LostInSpaceIdentifier:
                 if len(detection) >= _SCATTER_PAIRS:  # (a sum over the count: np.mean's bits, less its overhead)
                     variance = float(np.add.reduce((1.0 - dot[detection]) / radius2)) / len(detection)
                 claim2 = CLAIM_SIGMAS**2 * variance * (frame.radius2 if scalar else frame.radius2[:, None])
-                detection, star = sole_per_star(detection, star_of, (dots >= 1.0 - 0.5 * claim2).sum(axis=0))
+                detection, star = sole_per_star(detection, star_of, dots >= 1.0 - 0.5 * claim2)
                 ids[detection] = (self._label_hip[nearby.rows] if nearby.hip is None else nearby.hip)[star]
         if len(stars) == 1:
             return [StarMeasurements(stars[0].xy.copy(), stars[0].flux.copy(), ids)]
@@ -623,7 +628,7 @@ class LostInSpaceIdentifier:
             return None
         catalog = self.database.unit[catalog_rows]
         if len(pattern_body) == 1 and isinstance(radius2, float):  # one quad: each candidate checked in plain numbers
-            body, attitudes = pattern_body[0], []
+            body, fits = pattern_body[0], []
             body_list = body.tolist()
             for inertial in catalog:
                 attitude = wahba_svd(body, inertial)
@@ -633,24 +638,27 @@ class LostInSpaceIdentifier:
                     + (g * x + h * y + i * z - w) ** 2 <= radius2
                     for (x, y, z), (u, v, w) in zip(inertial.tolist(), body_list, strict=True)
                 ):
-                    attitudes.append(attitude)
+                    fits.append((attitude, body, inertial))
         else:
             attitudes = wahba_svd(pattern_body, catalog)
             miss = ((catalog @ attitudes.transpose(0, 2, 1) - pattern_body) ** 2).sum(axis=2)
-            attitudes = attitudes[(miss <= radius2).all(axis=1)]
+            fits = [(attitudes[k], pattern_body[k], catalog[k]) for k in (miss <= radius2).all(axis=1).nonzero()[0]]
         best, best_count = None, 0
-        for attitude in attitudes:
+        n, area, threshold = len(frame.body), frame.area, self.match_threshold
+        for attitude, body, inertial in fits:
             if best is not None and np.vdot(attitude, best[0]) > 3.0 - _SAME_ATTITUDE_TRACE:
                 continue  # the same solution from another pattern
             nearby = self._nearby(frame, attitude)
             _, star, dot = self._closest(frame, attitude, nearby)
             matched, rows = closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, -dot)
+            if 2 * len(matched) < n:  # few matches: perhaps a pattern with one wrong star (see _three_star_fit)
+                attitude, nearby, matched, rows = self._three_star_fit(frame, body, inertial,
+                                                                       (attitude, nearby, matched, rows))
             m = len(matched)
             if m <= best_count or m < 3:
                 continue
             # Database stars in the field about each boresight, at most: the sky cell's bound first (the chance of a
             # false match grows with it, so what passes with it passes with the count), then the count.
-            n, area, threshold = len(frame.body), frame.area, self.match_threshold
             in_field = nearby.in_field
             if in_field is None or bdtrc(m - 3, n, min(in_field * area, 1.0)) >= threshold:
                 db_unit, cos_half_field = nearby.unit[: nearby.n_db], self._cos_half_field
@@ -661,6 +669,27 @@ class LostInSpaceIdentifier:
                 if bdtrc(m - 3, n, min(in_field * area, 1.0)) >= threshold:
                     continue
             best, best_count = (attitude, nearby, matched, rows), m
+        return best
+
+    def _three_star_fit(self, frame: _Frame, body: np.ndarray, inertial: np.ndarray, fit: tuple) -> tuple:
+        """Of a pattern's fit ``fit`` (attitude (3, 3), the stars about it, its matched detections and their labelling
+        rows) and the fits of its stars three at a time (body vectors ``body`` (4, 3) matched to the catalogue
+        directions ``inertial`` (4, 3)), the one matching most detections (the first of equals).
+
+        A database pattern can hold, in place of one of the detected stars, a neighbour of it whose edges to the
+        other three differ from the right star's by less than the tolerance.  Its fit then turns about the pattern to
+        share the wrong star's offset among all four: the stars near the pattern still match (and can verify it), the
+        rest of the field does not, and the wrong star takes the neighbour's id.  Without it, the three right stars
+        give the attitude."""
+        best = fit
+        for left_out in range(4):
+            keep = _THREE_OF_FOUR[left_out]
+            attitude = wahba_svd(body[keep], inertial[keep])
+            nearby = self._nearby(frame, attitude, best[1])
+            _, star, dot = self._closest(frame, attitude, nearby)
+            matched, rows = closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, -dot)
+            if len(matched) > len(best[2]):
+                best = attitude, nearby, matched, rows
         return best
 
     def _grow(self, frame: _Frame, attitude: np.ndarray, nearby: _Nearby, matched: np.ndarray,

@@ -24,9 +24,9 @@ Steps (detections of all heads pooled as body-frame unit vectors):
    candidate agrees with a right one by chance (its chord is off by up to the gate: a chance of about tolerance /
    gate per pair), so it has few.
 4. The attitude is solved from the core (SVD solution of Wahba's problem), every detection re-paired with the star
-   within ``refine_gate_px`` (none when two or more are, and none for a star with two detections within
-   ``CLAIM_SIGMAS`` centroid sigmas: an ambiguous detection is left unidentified), and solve and re-pair repeated
-   until the pairs stop changing (at most ``_REPAIRS`` times).
+   within ``refine_gate_px`` (none when two or more are or lie within ``CLAIM_SIGMAS`` centroid sigmas, and none
+   for a star with two detections that close: an ambiguous detection is left unidentified), and solve and re-pair
+   repeated until the pairs stop changing (at most ``_REPAIRS`` times).
 5. Verification (:mod:`starenv.agents.identify.verify`): with ``n`` detections and ``m`` paired, ``p`` = the chance
    that a detection lands within ``refine_gate_px`` of a catalogue star under a wrong attitude (the density of the
    catalogue stars in each head's cone, the largest of the heads'), ``g = 2`` (two agreeing pairs fix an attitude,
@@ -268,10 +268,11 @@ class TrackingIdentifier:
         squared radius ``radii[0]`` (rad^2, per detection), and only when no other detection lies within
         ``CLAIM_SIGMAS`` centroid sigmas of that star (the scatter of each star's closest detection when there are
         ``_SCATTER_PAIRS``, else ``radii[2]``, px^2 per axis, with ``radii[1]`` the squared plate scale, rad^2/px^2);
-        of detections further apart the closest.  A detection with two stars or more within its radius stays unpaired,
-        and so do two detections by one star: which one made it is a guess (a pair a few px apart whose fainter star
-        went undetected or is merged into the brighter in the catalogue, or two stars whose noisy centroids
-        swapped)."""
+        of detections further apart the closest.  A detection with two stars or more within its radius or within
+        ``CLAIM_SIGMAS`` centroid sigmas stays unpaired, and so do two detections by one star: which one made it is a
+        guess (a pair a few px apart whose fainter star went undetected or is merged into the brighter in the
+        catalogue, two stars whose noisy centroids swapped, or a star whose noise took its detection past the radius
+        while its neighbour's lies within)."""
         radius2, pixel2, variance = radii
         squared = 2.0 - 2.0 * (body @ attitude @ unit.T)
         within = squared <= radius2[:, None]
@@ -281,8 +282,7 @@ class TrackingIdentifier:
         first = closest_per_star(alone, nearest, closest)[0]  # (each star's closest detection)
         if len(first) >= _SCATTER_PAIRS:  # the centroid variance per axis (px^2) measured on those pairs
             variance = 0.5 * (float((closest[first] / pixel2[first]).sum()) / len(first))  # (np.mean's bits)
-        near = (squared <= (CLAIM_SIGMAS**2 * variance * pixel2)[:, None]).sum(axis=0)
-        return sole_per_star(first, nearest, near)
+        return sole_per_star(first, nearest, squared <= (CLAIM_SIGMAS**2 * variance * pixel2)[:, None])
 
 
 class _Views(NamedTuple):

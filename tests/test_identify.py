@@ -732,7 +732,7 @@ def test_lost_in_space_at_1_px_never_gives_a_wrong_id(lost_in_space, catalog, na
     # Held out as above.  The verification accepts a pattern's attitude when P(X >= m - 2) < 1e-5 (module docstring
     # of lost_in_space): over 300 frames a wrong attitude gets through with probability well under 1e-2 even counting
     # every pattern tried; a wrong id of a right attitude (a detection closer to another star) is what the labelling
-    # rules (one star within the radius, one detection a star) exclude.
+    # rules (one star within the radius and within CLAIM_SIGMAS, one detection a star) exclude.
     identifier = lost_in_space[name]
     rng = np.random.default_rng(seed)
     for _ in range(300):

@@ -560,8 +560,8 @@ def test_lost_in_space_labels_out_to_the_measured_centroid_scatter():
     # labelling radius widens to 4 standard deviations of the scatter measured on the matches (at most 4.5 px), so
     # most of those detections are labelled too (without the widening only the few that the attitude's own error
     # brings within 3 px), and none wrongly.  The fixed radius alone would leave exp(-4.5) ~ 1.1 % of the stars
-    # unlabelled, a rate under 0.989: the 0.991 bound fails without the widening.  (Stars with a neighbour within
-    # CLAIM_SIGMAS sigmas are left unlabelled either way, a few tenths of a percent here.)
+    # unlabelled, a rate under 0.989: the 0.991 bound fails without the widening.  (It leaves room for the stars
+    # with a neighbour within CLAIM_SIGMAS sigmas, left unlabelled either way.)
     catalog = load_catalog(6.5, EPOCH)
     identifier = LostInSpaceIdentifier()
     identifier.reset([NARROW], catalog)

@@ -1,7 +1,8 @@
 """The false-match bound of the shared verification (:mod:`starenv.agents.identify.verify`): its chance of a pair
 against Monte Carlo of random star fields, the two-pair hypothesis count against brute force, the bound as a bound
 (wrong attitudes on random fields reach it no more often than it says), and wrong hypotheses of a rendered paper 002
-frame (a flipped roll, a wrong main star) refused."""
+frame (a flipped roll, a wrong main star) refused; the scatter of directions predicted by a fitted attitude against
+Monte Carlo, and the heads whose matches a loose roll leaves to chance."""
 
 import itertools
 import math
@@ -11,7 +12,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from starenv.agents.blocks import wahba_svd
-from starenv.agents.identify.verify import false_match_probability, pair_hypotheses, verify, verify_any_search
+from starenv.agents.identify.verify import (
+    false_match_probability,
+    pair_hypotheses,
+    predicted_scatter,
+    unconfirmed_heads,
+    verify,
+    verify_any_search,
+)
 from starenv.sim.conventions import pointing
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
@@ -135,3 +143,89 @@ def _angle(a: np.ndarray, b: np.ndarray) -> float:
 
 def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 2.0 * np.arcsin(np.minimum(1.0, np.linalg.norm(a - b, axis=1) / 2.0))
+
+
+def _tangent_noise(rng, vectors: np.ndarray, sigma: float) -> np.ndarray:
+    """``vectors`` (n, 3) moved by Gaussian noise of ``sigma`` rad on each of the two axes across them, renormalised."""
+    noisy = vectors + rng.normal(0.0, sigma, vectors.shape)
+    noisy -= np.sum(noisy * vectors, axis=1, keepdims=True) * vectors - vectors  # (drop the radial part)
+    return noisy / np.linalg.norm(noisy, axis=1, keepdims=True)
+
+
+def _cluster(rng, axis: np.ndarray, count: int, radius_deg: float) -> np.ndarray:
+    """``count`` unit vectors uniform within ``radius_deg`` of ``axis``."""
+    rotation = Rotation.align_vectors([axis], [[0.0, 0.0, 1.0]])[0]
+    r = math.radians(radius_deg) * np.sqrt(rng.uniform(size=count))
+    a = rng.uniform(0.0, 2.0 * math.pi, count)
+    return rotation.apply(np.column_stack([np.sin(r) * np.cos(a), np.sin(r) * np.sin(a), np.cos(r)]))
+
+
+@pytest.mark.parametrize("spread_deg, seed", [(3.0, 1), (40.0, 2)])
+def test_predicted_scatter_is_that_of_the_fitted_attitude_over_noisy_fits(spread_deg, seed):
+    # A small cluster leaves the roll about it loose (a far direction's scatter hundreds of times its own noise), a
+    # wide one does not.  The covariance sigma^2 (sum (I - b b'))^-1 is the first-order one of Wahba's problem with
+    # equal weights; over 4000 noisy fits the mean squared displacement of each direction matches it within 10 %
+    # (the Monte Carlo's own spread is about 2 % at this count).
+    rng = np.random.default_rng(seed)
+    sigma = 1e-4
+    basis = _cluster(rng, np.array([0.0, 0.0, 1.0]), 6, spread_deg)
+    directions = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, math.sqrt(0.5), math.sqrt(0.5)]])
+    predicted = np.array(predicted_scatter(basis, sigma**-2, directions))
+    displaced = np.zeros(len(directions))
+    for _ in range(4000):
+        fitted = wahba_svd(_tangent_noise(rng, basis, sigma), basis)  # the attitude fitted on noisy detections
+        displaced += np.sum((directions @ fitted.T - directions) ** 2, axis=1)
+    np.testing.assert_allclose(displaced / 4000, predicted, rtol=0.1)
+    weights = np.full(len(basis), sigma**-2)  # the per-vector form gives the same
+    np.testing.assert_allclose(predicted_scatter(basis, weights, directions), predicted, rtol=1e-12)
+
+
+def _two_heads(rng, anchor_spread_deg: float, far_count: int):
+    """An anchor head of 5 detections within ``anchor_spread_deg`` of +Z and a far head of ``far_count`` about +X."""
+    body = np.vstack([_cluster(rng, np.array([0.0, 0.0, 1.0]), 5, anchor_spread_deg),
+                      _cluster(rng, np.array([1.0, 0.0, 0.0]), far_count, 3.0)])
+    return body, np.repeat([0, 1], [5, far_count])
+
+
+SIGMA, RADIUS, CHANCE, THRESHOLD = 1e-4, 6e-4, 5e-4, 1e-5  # rad (0.5 px, 3 px at 42"/px), p per detection, bound
+
+
+@pytest.mark.parametrize("far_matched, held_back", [(1, True), (2, True), (3, False), (6, False)])
+def test_a_far_head_under_a_loose_roll_is_held_back_unless_its_matches_are_too_many_for_chance(far_matched,
+                                                                                               held_back):
+    # Anchor of 5 within 3 deg: the roll about it is loose, the far head's 3 sigma reach about 7 match radii (about
+    # 7 rolls searched).  Its k of 6 detections matching by chance at one of them: 7 P(X >= k), X ~ Binomial(6, 5e-4):
+    # about 2e-2 for k = 1 and 2.7e-5 for k = 2 (over the 1e-5 bound), 2e-8 for k = 3: held back for 1 and 2.
+    body, head = _two_heads(np.random.default_rng(3), 3.0, 6)
+    matched = np.concatenate([np.arange(5), 5 + np.arange(far_matched)])
+    radius2 = np.full(2, RADIUS**2)
+    reach2 = 9.0 * max(predicted_scatter(body[:5], SIGMA**-2, body[5:]))
+    assert reach2 > 25 * RADIUS**2  # (the trap: a search several radii wide)
+    out = unconfirmed_heads(body, head, matched, 0, SIGMA**-2, radius2, np.full(2, CHANCE), THRESHOLD)
+    assert out == ([1] if held_back else [])
+
+
+def test_a_far_head_the_anchor_predicts_keeps_a_single_match_and_a_head_with_none_is_held_back_only_when_loose():
+    # An anchor of 5 spread over 40 deg pins the roll: the far head's 3 sigma lies within the match radius, and its
+    # one match (or none) is as good as the anchor's.  With the anchor in 3 deg, a head with no match is held back
+    # too (its detections are not to be labelled through a radius wider than the search's).
+    body, head = _two_heads(np.random.default_rng(4), 40.0, 6)
+    radius2 = np.full(2, RADIUS**2)
+    assert 9.0 * max(predicted_scatter(body[:5], SIGMA**-2, body[5:])) < RADIUS**2
+    for matched in (np.arange(6), np.arange(5)):
+        assert unconfirmed_heads(body, head, matched, 0, SIGMA**-2, radius2, np.full(2, CHANCE), THRESHOLD) == []
+    body, head = _two_heads(np.random.default_rng(4), 3.0, 6)
+    assert unconfirmed_heads(body, head, np.arange(5), 0, SIGMA**-2, radius2, np.full(2, CHANCE), THRESHOLD) == [1]
+
+
+def test_two_far_heads_under_one_loose_roll_are_tested_together():
+    # Heads about +X (2 of 6 matched) and +Y (1 of 6), about 7 rolls searched: each alone could be chance (7 P(X >= 2)
+    # about 2.5e-5, 7 P(X >= 1) about 2e-2), but one roll moves both, and 3 matches among their 12 detections at one
+    # of its rolls are not (about 2e-7).  With no match in the +Y head (2 of 12, about 1.1e-4) both are held back.
+    rng = np.random.default_rng(5)
+    body = np.vstack([_cluster(rng, np.array(axis), count, 3.0)
+                      for axis, count in (([0.0, 0.0, 1.0], 5), ([1.0, 0.0, 0.0], 6), ([0.0, 1.0, 0.0], 6))])
+    head = np.repeat([0, 1, 2], [5, 6, 6])
+    args = (0, SIGMA**-2, np.full(3, RADIUS**2), np.full(3, CHANCE), THRESHOLD)
+    assert unconfirmed_heads(body, head, np.array([0, 1, 2, 3, 4, 5, 6, 11]), *args) == []
+    assert unconfirmed_heads(body, head, np.array([0, 1, 2, 3, 4, 5, 6]), *args) == [1, 2]

@@ -38,20 +38,23 @@ Method
     a time instead, in plain numbers (a few quads cost less so than as arrays, and the search stops at the first
     verified one), and the first verified one wins (two verified attitudes in one step would mean a false match).
     Matching and refining the attitude then alternate, the search widened by the attitude's uncertainty (a pattern in
-    one small field leaves the roll about it loose, which moves the stars of the other heads), and every detection
-    within the labelling radius of a catalogue star is labelled (a detection with two catalogue stars within its radius
-    or within ``CLAIM_SIGMAS`` centroid sigmas, or a star with two detections that close, is left unidentified: which
-    one made it is a guess; of two detections further apart the closest is the star's).  The labelling radius is the
-    match radius, widened when the scatter of the matched detections about their stars (measured under the refined
-    attitude, on 8 pairs or more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1 px of noise per
-    axis, the 3 px default alone would leave about 1 % of the stars unlabelled (``exp(-4.5)``).  Verifying,
-    refining and labelling compare the detections with the labelling stars (the database's first) of a cone about
-    each head's boresight, found once for all three, by brute force (both sets are small), rather than through a k-d
-    tree query a detection; for one head the cone's stars are those listed for the sky cell of its boresight (the sky
-    split into cells on a cube's faces, each listing the stars within a head's reach of any of its points; made by
-    :meth:`reset`).  A cell also bounds the database stars within half a field of any of its points: verification
-    tries ``p`` from that bound first and counts the stars only when it fails (the false-match probability grows with
-    ``p``, so what passes with the bound passes with the count: the same hypotheses are verified).
+    one small field leaves the roll about it loose, which moves the stars of the other heads); another head's matches
+    join the fit, and its detections are labelled, only when the attitude fitted on the heads already confirmed predicts
+    them within their match radius or they are too many for chance over the rolls searched
+    (:func:`~starenv.agents.identify.verify.unconfirmed_heads`: one chance match would pin the roll to itself).  Then
+    every detection within the labelling radius of a catalogue star is labelled (a detection with two catalogue stars
+    within its radius or within ``CLAIM_SIGMAS`` centroid sigmas, or a star with two detections that close, is left
+    unidentified: which one made it is a guess; of two detections further apart the closest is the star's).  The
+    labelling radius is the match radius, widened when the scatter of the matched detections about their stars (measured
+    under the refined attitude, on 8 pairs or more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1
+    px of noise per axis, the 3 px default alone would leave about 1 % of the stars unlabelled
+    (``exp(-4.5)``).  Verifying, refining and labelling compare the detections with the labelling stars (the database's
+    first) of a cone about each head's boresight, found once for all three, by brute force (both sets are small), rather
+    than through a k-d tree query a detection; for one head the cone's stars are those listed for the sky cell of its
+    boresight (the sky split into cells on a cube's faces, each listing the stars within a head's reach of any of its
+    points; made by :meth:`reset`).  A cell also bounds the database stars within half a field of any of its points:
+    verification tries ``p`` from that bound first and counts the stars only when it fails (the false-match probability
+    grows with ``p``, so what passes with the bound passes with the count: the same hypotheses are verified).
 
     A star closer than ``MERGE_PX`` pixels to a brighter one is taken as part of it (the sensor sees one star):
     detections are matched to the brighter only.
@@ -104,6 +107,7 @@ from starenv.agents.identify.geometry import (
     sole_per_star,
     with_ids,
 )
+from starenv.agents.identify.verify import predicted_scatter, unconfirmed_heads
 from starenv.sim.optics import Camera, NoDistortion
 from starenv.sim.sky import StarCatalog
 
@@ -225,7 +229,7 @@ class _Frame(NamedTuple):
     detections its boresight ``axes`` (h, 3) and the chord of a cone about it that holds every catalogue star a
     detection can be matched to while growing a hypothesis; ``area``: the largest match disc as a fraction of the
     database field, ``reuse``: the smallest trace(A B^T) of two attitudes whose cones are interchangeable
-    (:meth:`LostInSpaceIdentifier._nearby`)."""
+    (:meth:`LostInSpaceIdentifier._nearby`); ``head``: each detection's head (n,), None for one head."""
 
     body: np.ndarray
     radius2: float | np.ndarray
@@ -236,6 +240,7 @@ class _Frame(NamedTuple):
     chords: list
     area: float
     reuse: float
+    head: np.ndarray | None
 
 
 class _Nearby(NamedTuple):
@@ -330,6 +335,7 @@ class LostInSpaceIdentifier:
         step_keys = _BIN_STEPS @ self._digits
         self._probe_keys = np.stack([step_keys, step_keys + 1])  # per bin step: its key offset and the next one
         self._cos_half_field = math.cos(settings.fov_rad / 2.0)
+        self._mean_in_field = len(db.hip) * (1.0 - self._cos_half_field) / 2.0  # database stars in a field on average
         self._digit_list = self._digits.tolist()
         self._tolerance, self._blend_rad = settings.edge_tolerance_rad, settings.blend_rad
         extent = (float(db.largest_edge.min()), float(db.largest_edge.max())) if len(db) else (math.inf, -math.inf)
@@ -423,6 +429,7 @@ class LostInSpaceIdentifier:
             chords=[],
             area=radius**2 / (2.0 * (1.0 - math.cos(half_field))),
             reuse=1.0 + 2.0 * math.cos(_GROW_MAX * radius),
+            head=None,
         )
 
     def _frame(self, stars: list[StarMeasurements], heads: _Heads, counts: list[int]) -> _Frame:
@@ -473,6 +480,7 @@ class LostInSpaceIdentifier:
             chords=chords,
             area=max_radius**2 / (2.0 * (1.0 - math.cos(half_field))),
             reuse=1.0 + 2.0 * math.cos(_GROW_MAX * max_radius),
+            head=np.repeat(np.arange(len(counts)), counts),
         )
 
     def _solve(self, frame: _Frame, stars: list[StarMeasurements], counts: list[int]) -> tuple | None:
@@ -702,15 +710,37 @@ class LostInSpaceIdentifier:
         other heads by more than the match radius; so matching alternates with refining the attitude, each detection
         searched within its match radius widened by 3 sigma of its predicted direction under the attitude's
         covariance (:meth:`_widened`), until the matches stop changing.  The last matching uses the plain match
-        radius.
+        radius.  With several heads, the matches of a head other than the one with most of them (three or more)
+        enter the first fit, and the last, only when :meth:`_unconfirmed_heads` does not hold them back: a far
+        head's match under the loose roll can be a chance one, and in the fit it would pin the roll to itself,
+        shrink the head's predicted scatter and keep its own stars out of the widened search.  The detections of a
+        head held back at the end are not labelled.  A round whose fit keeps fewer than half the plain matches of
+        the round before (widened matches that were chance ones) is undone, and growing stops.
         """
         body, unit = frame.body, self._label_unit
-        for _ in range(_GROW_STEPS):
+        anchor = None
+        if frame.head is not None:
+            heads = frame.head[matched]
+            per_head = np.bincount(heads)
+            if per_head.max() >= 3:  # (else no head fixes the attitude alone)
+                anchor = int(per_head.argmax())
+                doubtful = self._unconfirmed_heads(frame, anchor, matched, nearby)
+                if doubtful:
+                    keep = ~np.isin(heads, doubtful)
+                    matched, rows = matched[keep], rows[keep]
+        last, changed = None, True  # (changed: the last matching may differ from the matches fitted)
+        for step in range(_GROW_STEPS + 1):  # (the last round matches in the plain radius only)
             attitude = wahba_svd(body[matched], unit[rows])
             nearby = self._nearby(frame, attitude, nearby)
             dots, star, dot = self._closest(frame, attitude, nearby)
             within = dot >= frame.cos_radius
             final = closest_per_star(within.nonzero()[0], star, -dot)
+            if last is not None and 2 * len(final[0]) < len(last[3][0]):  # the widened matches broke the fit
+                attitude, nearby, dots, final = last
+                break
+            last = attitude, nearby, dots, final
+            if step == _GROW_STEPS:
+                break
             grown = final
             band = ((dot >= frame.cos_grow) > within).nonzero()[0]  # only these may gain from a widened radius
             if len(band):
@@ -719,44 +749,57 @@ class LostInSpaceIdentifier:
                     within[widened] = True
                     grown = closest_per_star(within.nonzero()[0], star, -dot)
             if same_matches(grown, (matched, rows)):
+                changed = grown is not final
                 break
             matched, rows = grown
-        else:
-            attitude = wahba_svd(body[matched], unit[rows])
-            nearby = self._nearby(frame, attitude, nearby)
-            dots, star, dot = self._closest(frame, attitude, nearby)
-            final = closest_per_star((dot >= frame.cos_radius).nonzero()[0], star, -dot)
-            grown = None
-        if grown is not final and not same_matches(final, (matched, rows)):  # (else the same matches)
+        refit = changed and not same_matches(final, (matched, rows))  # (else the attitude is fitted on them)
+        dropped = [] if anchor is None else self._unconfirmed_heads(frame, anchor, final[0], nearby)
+        if dropped:
+            keep = ~np.isin(frame.head[final[0]], dropped)
+            final, refit = (final[0][keep], final[1][keep]), True
+        if refit:
             attitude = wahba_svd(body[final[0]], unit[final[1]])
             nearby = self._nearby(frame, attitude, nearby)
             dots = body.dot(attitude.dot(nearby.unit.T))
+        if dropped:
+            dots[np.isin(frame.head, dropped)] = -1.0  # (no star within any radius: left unlabelled)
         return attitude, nearby, dots
 
     def _widened(self, frame: _Frame, matched: np.ndarray, band: np.ndarray, dot: np.ndarray) -> list:
         """The detections of ``band`` (beyond their match radius, within ``_GROW_MAX`` radii of a star at dot product
         ``dot``) within their match radius widened by 3 sigma of their predicted direction under the covariance of an
-        attitude fitted on the ``matched`` detections; in plain numbers (a 3 x 3 inverse by cofactors)."""
-        b = frame.body[matched]
-        scalar = isinstance(frame.radius2, float)
-        if scalar:
-            weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2  # noise ** -2
-            information = weight * (len(b) * IDENTITY - b.T.dot(b))
-        else:
-            weight = (self.match_radius_px / self.centroid_noise_px) ** 2 / frame.radius2[matched]
-            information = weight.sum() * IDENTITY - (b.T * weight) @ b
-        (a, d, e), (_, f, g), (_, _, h) = information.tolist()  # symmetric
-        ca, cd, ce = f * h - g * g, e * g - d * h, d * g - e * f  # its cofactors
-        cf, cg, ch = a * h - e * e, d * e - a * g, a * f - d * d
-        scale = 1.0 / (a * ca + d * cd + e * ce)  # covariance = cofactors * scale (rad^2, about body axes)
-        trace = ca + cf + ch
-        cos_radius = frame.cos_radius
-        out = []
-        for row, (x, y, z), near in zip(band.tolist(), frame.body[band].tolist(), dot[band].tolist(), strict=True):
-            quadratic = ca * x * x + cf * y * y + ch * z * z + 2.0 * (cd * x * y + ce * x * z + cg * y * z)
-            if near >= (cos_radius if scalar else cos_radius[row]) - 4.5 * max(scale * (trace - quadratic), 0.0):
-                out.append(row)
-        return out
+        attitude fitted on the ``matched`` detections."""
+        cos_radius, scalar = frame.cos_radius, isinstance(frame.cos_radius, float)
+        scatter = predicted_scatter(frame.body[matched], self._weight(frame, matched), frame.body[band])
+        return [
+            row
+            for row, near, variance in zip(band.tolist(), dot[band].tolist(), scatter, strict=True)
+            if near >= (cos_radius if scalar else cos_radius[row]) - 4.5 * variance
+        ]
+
+    def _weight(self, frame: _Frame, rows: np.ndarray | None = None) -> float | np.ndarray:
+        """The inverse centroid variance (rad^-2 per axis) of ``frame``'s detections ``rows`` (all: None): a number
+        when all share one radius."""
+        scale = (self.match_radius_px / self.centroid_noise_px) ** 2  # (match radii per centroid sigma) squared
+        if isinstance(frame.radius2, float):
+            return scale / frame.radius2
+        return scale / (frame.radius2 if rows is None else frame.radius2[rows])
+
+    def _unconfirmed_heads(self, frame: _Frame, anchor: int, matched: np.ndarray, nearby: _Nearby) -> list:
+        """:func:`~starenv.agents.identify.verify.unconfirmed_heads` of ``matched``, ``p`` per head as in the
+        verification from the database stars within half a field of its boresight or, when fewer, from the sky's
+        mean (a sparse head's count is too small a sample to bound ``p`` by)."""
+        heads = np.unique(frame.head)
+        in_field = np.maximum(
+            np.count_nonzero(nearby.unit[: nearby.n_db] @ nearby.centres.T >= self._cos_half_field, axis=0),
+            self._mean_in_field,
+        )
+        chance = np.zeros(int(heads[-1]) + 1)
+        chance[heads] = np.minimum(in_field * frame.area, 1.0)
+        radius2 = np.zeros(len(chance))
+        radius2[frame.head] = frame.radius2
+        return unconfirmed_heads(frame.body, frame.head, matched, anchor, self._weight(frame), radius2, chance,
+                                 self.match_threshold)
 
     def _nearby(self, frame: _Frame, attitude: np.ndarray, known: _Nearby | None = None) -> _Nearby:
         """The labelling stars in ``frame``'s cones under ``attitude``; ``known`` itself if it was made for an

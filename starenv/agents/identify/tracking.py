@@ -26,7 +26,9 @@ Steps (detections of all heads pooled as body-frame unit vectors):
 4. The attitude is solved from the core (SVD solution of Wahba's problem), every detection re-paired with the star
    within ``refine_gate_px`` (none when two or more are or lie within ``CLAIM_SIGMAS`` centroid sigmas, and none
    for a star with two detections that close: an ambiguous detection is left unidentified), and solve and re-pair
-   repeated until the pairs stop changing (at most ``_REPAIRS`` times).
+   repeated until the pairs stop changing (at most ``_REPAIRS`` times).  With several heads, the pairs of a head
+   that the others' pairs do not predict and that could be chance over the roll they leave loose are then dropped
+   (:func:`~starenv.agents.identify.verify.unconfirmed_heads`).
 5. Verification (:mod:`starenv.agents.identify.verify`): with ``n`` detections and ``m`` paired, ``p`` = the chance
    that a detection lands within ``refine_gate_px`` of a catalogue star under a wrong attitude (the density of the
    catalogue stars in each head's cone, the largest of the heads'), ``g = 2`` (two agreeing pairs fix an attitude,
@@ -78,7 +80,7 @@ from starenv.agents.identify.geometry import (
     with_ids,
 )
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
-from starenv.agents.identify.verify import chance_match, false_match_probability
+from starenv.agents.identify.verify import chance_match, false_match_probability, unconfirmed_heads
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 
@@ -163,9 +165,10 @@ class TrackingIdentifier:
         p = float(np.max(chance_match(density[heads], np.sqrt(radius2))))
         # Two attempts, each verified at half of max_false: together they accept a wrong attitude with a probability
         # below max_false.
+        confirm = (heads, pix, density) if len(cameras) > 1 else None
         voted = self._vote(body, pixel, pix, unit, prior)
         if voted is not None:
-            pairs = self._settle(body, unit, self._pair(body, unit, wahba_svd(*voted[0]), radii), radii)
+            pairs = self._settle(body, unit, self._pair(body, unit, wahba_svd(*voted[0]), radii), radii, confirm)
             if pairs is not None and self._verified(n, len(pairs[0]), p, 2, 2 * voted[1]):
                 return self._ids(n, stars, pairs)
         # 6. The prior's own pairing, verified before any solution is fitted to it, with one pair counted as given:
@@ -173,7 +176,7 @@ class TrackingIdentifier:
         # The settled pairs are tested again: settling may drop pairs, and the bound stated is for what is returned.
         pairs = self._pair(body, unit, prior, radii)
         if self._verified(n, len(pairs[0]), p, 1, 2):
-            pairs = self._settle(body, unit, pairs, radii)
+            pairs = self._settle(body, unit, pairs, radii, confirm)
             if pairs is not None and self._verified(n, len(pairs[0]), p, 1, 2):
                 return self._ids(n, stars, pairs)
         return None
@@ -211,9 +214,11 @@ class TrackingIdentifier:
         return (body[det[core]], unit[star[core]]), max(np.count_nonzero(agree) // 2, 1)
 
     def _settle(self, body: np.ndarray, unit: np.ndarray, pairs: tuple[np.ndarray, np.ndarray],
-                radii: tuple) -> tuple[np.ndarray, np.ndarray] | None:
-        """Step 4 from a first pairing: solve and re-pair (:meth:`_pair`'s ``radii``) until the pairs settle; None
-        when fewer than ``min_matches`` pair."""
+                radii: tuple, confirm: tuple | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Step 4 from a first pairing: solve and re-pair (:meth:`_pair`'s ``radii``) until the pairs settle, less
+        the pairs of heads :func:`~starenv.agents.identify.verify.unconfirmed_heads` holds back when ``confirm``
+        (several heads: the detections' heads, plate scales (rad/px) and each head's star density (per sr)) is
+        given; None when fewer than ``min_matches`` pair."""
         for _ in range(_REPAIRS):
             if len(pairs[0]) < self.min_matches:
                 return None
@@ -222,6 +227,18 @@ class TrackingIdentifier:
             if same_matches(repaired, pairs):
                 break
             pairs = repaired
+        if confirm is not None and len(pairs[0]):
+            heads, pix, density = confirm
+            per_head = np.bincount(heads[pairs[0]], minlength=len(density))
+            if per_head.max() >= 3:  # (else no head fixes the attitude alone)
+                radius2 = np.zeros(len(density))
+                radius2[heads] = radii[0]
+                dropped = unconfirmed_heads(body, heads, pairs[0], int(per_head.argmax()),
+                                            1.0 / (self.centroid_noise_px * pix) ** 2, radius2,
+                                            chance_match(density, np.sqrt(radius2)), self.max_false)
+                if dropped:
+                    keep = ~np.isin(heads[pairs[0]], dropped)
+                    pairs = pairs[0][keep], pairs[1][keep]
         return pairs if len(pairs[0]) >= self.min_matches else None
 
     def _verified(self, n: int, m: int, p: float, given: int, hypotheses: int) -> bool:

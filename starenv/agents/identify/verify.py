@@ -57,6 +57,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc
 
 from starenv.agents.blocks import wahba_svd
+from starenv.agents.identify.geometry import IDENTITY
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 
@@ -74,6 +75,75 @@ def false_match_probability(n: int, m: int, p: float, given: int = 0, hypotheses
     if m <= given:
         return 1.0
     return min(1.0, float(hypotheses * bdtrc(m - given - 1, n - given, p)))
+
+
+def predicted_scatter(basis: np.ndarray, weight: float | np.ndarray, directions: np.ndarray) -> list:
+    """The variance (rad^2, the two axes across it summed) of each of the unit vectors ``directions`` (k, 3)
+    predicted under an attitude fitted on the unit vectors ``basis`` (m, 3), from the attitude's covariance; ``weight``
+    is the inverse centroid variance (rad^-2 per axis) of the basis vectors, a number or (m,).  In plain numbers (a
+    3 x 3 inverse by cofactors)."""
+    if isinstance(weight, float):
+        information = weight * (len(basis) * IDENTITY - basis.T.dot(basis))
+    else:
+        information = weight.sum() * IDENTITY - (basis.T * weight) @ basis
+    (a, d, e), (_, f, g), (_, _, h) = information.tolist()  # symmetric
+    ca, cd, ce = f * h - g * g, e * g - d * h, d * g - e * f  # its cofactors
+    cf, cg, ch = a * h - e * e, d * e - a * g, a * f - d * d
+    scale = 1.0 / (a * ca + d * cd + e * ce)  # covariance = cofactors * scale (rad^2, about body axes)
+    trace = ca + cf + ch
+    return [  # E|rotation x direction|^2 = trace(C) - direction' C direction
+        max(scale * (trace - (ca * x * x + cf * y * y + ch * z * z + 2.0 * (cd * x * y + ce * x * z + cg * y * z))),
+            0.0)
+        for x, y, z in directions.tolist()
+    ]
+
+
+def unconfirmed_heads(body: np.ndarray, head: np.ndarray, matched: np.ndarray, anchor: int,
+                      weight: float | np.ndarray, radius2: np.ndarray, chance: np.ndarray,
+                      threshold: float) -> list:
+    """The heads whose ``matched`` detections may be chance matches (or, with none, whose detections a labelling
+    radius wider than the match radius may label by chance), ``anchor`` (a head whose matches fix the attitude alone)
+    aside: pooled detections ``body`` (n, 3) of heads ``head`` (n,), their inverse centroid variance
+    ``weight`` (rad^-2, a number or (n,)); per head its match radius squared ``radius2`` (rad^2) and the chance
+    ``chance`` that a detection lands that close to a star under a wrong attitude.
+
+    One small head's matches leave the roll about it loose: another head's stars move by several match radii, and a
+    detection there can land within the radius of a wrong star; taken into a fit, that one match pins the roll to
+    itself.  So a head is confirmed when the attitude fitted on the confirmed heads' matches (the anchor's at first)
+    predicts its detections within their match radius (3 sigma, :func:`predicted_scatter`), or when its matches are
+    too many for chance: the search over the loose roll covers about ``3 sigma / radius`` distinct rolls, and at each
+    the head's ``n`` detections match ``k`` or more stars with probability ``P(X >= k)``, ``X ~ Binomial(n, chance)``;
+    their product (:func:`false_match_probability`) must stay under ``threshold``.  Confirming repeats until no head
+    is added.  The heads left are then tested together (one roll moves them all: coincidences in several heads at
+    one roll multiply), with the most rolls and the largest chance of any of them, and are returned unless that
+    passes."""
+    found = np.bincount(head[matched], minlength=len(radius2))
+    pending = [h for h in np.unique(head).tolist() if h != anchor]
+    confirmed = [anchor]
+    while pending:
+        basis = matched[np.isin(head[matched], confirmed)]
+        basis_weight = weight if isinstance(weight, float) else weight[basis]
+        left, searched = [], []  # per head left: (detections, rolls)
+        for h in pending:
+            rows = (head == h).nonzero()[0]
+            reach2 = 9.0 * max(predicted_scatter(body[basis], basis_weight, body[rows]))
+            rolls = math.sqrt(reach2 / radius2[h])
+            if reach2 > radius2[h] and false_match_probability(
+                len(rows), int(found[h]), float(chance[h]), 0, rolls
+            ) >= threshold:
+                left.append(h)
+                searched.append((len(rows), rolls))
+            else:
+                confirmed.append(h)
+        if len(left) == len(pending):
+            break
+        pending = left
+    if len(pending) > 1 and false_match_probability(
+        sum(n for n, _ in searched), int(found[pending].sum()), float(chance[pending].max()), 0,
+        max(rolls for _, rolls in searched)
+    ) < threshold:
+        return []
+    return pending
 
 
 def pair_hypotheses(body: np.ndarray, reference: np.ndarray, tolerance: float) -> int:

@@ -770,6 +770,22 @@ def test_multi_head_lost_in_space_at_1_px_never_takes_a_far_heads_chance_match(m
     assert correct >= 0.93 * present  # (the rule holds a head back only when its matches could be chance)
 
 
+
+def test_a_far_head_with_no_database_star_near_its_boresight_gets_the_skys_mean_chance(multi_head):
+    # Frame 371 of seed 92 at 1 px: head 0's three stars lie towards its corners, none of the database's within half
+    # a field of its boresight (checked), so the count there gives a chance of 0 that a detection lands on a star,
+    # and the head's one match, a chance one under the loose roll, would pass as certain.  The sky's mean density
+    # bounds it from below; the test fails with the count alone.
+    identifier, catalog = multi_head
+    rng = np.random.default_rng(92)
+    for _ in range(372):
+        attitude = Rotation.random(random_state=rng)
+        stars, truth = scene(PAPER_004_HEADS, catalog, attitude, rng, noise_px=1.0)
+    boresight = attitude.inv().apply(PAPER_004_HEADS[0].mounting.inv().apply([0.0, 0.0, 1.0]))  # (inertial)
+    assert not np.any(identifier.database.unit @ boresight >= math.cos(identifier.database.settings.fov_rad / 2.0))
+    claimed = np.concatenate([s.catalog_id for s in identifier.identify(stars, PAPER_004_HEADS, None)])
+    assert _no_real_wrong_id(claimed, np.concatenate(truth), catalog)
+
 def test_multi_head_tracking_from_a_compass_prior_never_takes_a_far_heads_chance_match(multi_head):
     # Held out (seed 347).  A prior 2 deg off per axis (paper 004's electronic compass) is beyond the gate: tracking
     # pairs from it or falls back on lost in space, and either can end on one head's pairs with the roll loose.  Its

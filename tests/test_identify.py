@@ -786,6 +786,22 @@ def test_a_far_head_with_no_database_star_near_its_boresight_gets_the_skys_mean_
     claimed = np.concatenate([s.catalog_id for s in identifier.identify(stars, PAPER_004_HEADS, None)])
     assert _no_real_wrong_id(claimed, np.concatenate(truth), catalog)
 
+
+def test_a_growth_round_broken_by_chance_matches_is_undone(multi_head):
+    # Frame 132 of seed 96 at 1 px: the anchor head's 6 matches leave the roll loose, and the widened search in a
+    # 30-detection far head takes chance stars with its own; their joint fit keeps no plain match, and growing on from
+    # it fitted nothing (a singular covariance: the call raised).  The round is undone and the frame labelled from
+    # the one before, with no wrong id.
+    identifier, catalog = multi_head
+    rng = np.random.default_rng(96)
+    for _ in range(133):
+        stars, truth = scene(PAPER_004_HEADS, catalog, Rotation.random(random_state=rng), rng, noise_px=1.0)
+    assert [len(s) for s in stars] == [6, 30, 5]
+    claimed = np.concatenate([s.catalog_id for s in identifier.identify(stars, PAPER_004_HEADS, None)])
+    true = np.concatenate(truth)
+    assert _no_real_wrong_id(claimed, true, catalog)
+    assert np.count_nonzero(claimed == true) >= 6
+
 def test_multi_head_tracking_from_a_compass_prior_never_takes_a_far_heads_chance_match(multi_head):
     # Held out (seed 347).  A prior 2 deg off per axis (paper 004's electronic compass) is beyond the gate: tracking
     # pairs from it or falls back on lost in space, and either can end on one head's pairs with the roll loose.  Its

@@ -15,8 +15,9 @@ from starenv.sim.optics import Camera
 
 MERGE_PX = 2.0  # a star closer than this (px, coarsest head) to a brighter one is taken as part of it
 # A centroid with Gaussian noise of sigma per axis lies beyond r of its star with probability exp(-r^2 / (2 sigma^2))
-# (Rayleigh): beyond this many sigmas with probability 1e-4.  A star with two detections within it cannot tell which
-# is its own, nor a detection with two stars within it which one made it (:func:`sole_per_star`).
+# (Rayleigh): beyond this many sigmas with probability 1e-4 (of a scatter measured on a few pairs, more:
+# :func:`claim_scale2`).  A star with two detections within it cannot tell which is its own, nor a detection with two
+# stars within it which one made it (:func:`sole_per_star`).
 CLAIM_SIGMAS = math.sqrt(2.0 * math.log(1e4))
 EDGE_FROM, EDGE_TO = np.triu_indices(4, 1)  # the six edges of a pattern: 01, 02, 03, 12, 13, 23
 STAR_ORDERS = np.array(list(itertools.permutations(range(4))))  # (24, 4)
@@ -102,6 +103,16 @@ def sole_per_star(rows: np.ndarray, star: np.ndarray, near: np.ndarray) -> tuple
     counts = near.astype(np.float64)  # (the counts as products with ones: summing booleans costs several times more)
     alone = (np.ones(len(counts)).dot(counts)[star[rows]] <= 1.0) & (counts.dot(np.ones(counts.shape[1]))[rows] <= 1.0)
     return rows[alone], star[rows[alone]]
+
+
+def claim_scale2(pairs: int) -> float:
+    """The squared claim radius in units of a centroid variance per axis measured as the mean over ``pairs`` (8 or
+    more) detection-star pairs under an attitude fitted on them: ``CLAIM_SIGMAS ** 2`` for a known variance, more for
+    a measured one.  With ``k = 2 pairs - 3`` degrees of freedom (two axes a pair, three fitted), a detection's
+    squared offset from its star over twice the unbiased variance is F(2, k): beyond ``c`` with probability
+    ``(1 + 2c / k) ** (-k / 2)``.  For that to be 1e-4, as for ``CLAIM_SIGMAS``, ``2c = k (1e4 ** (2 / k) - 1)``;
+    times ``2 pairs / k`` for the mean."""
+    return 2.0 * pairs * (1e4 ** (2.0 / (2 * pairs - 3)) - 1.0)
 
 
 def same_matches(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> bool:

@@ -44,10 +44,11 @@ Method
     (:func:`~starenv.agents.identify.verify.unconfirmed_heads`: one chance match would pin the roll to itself).  Then
     every detection within the labelling radius of a catalogue star is labelled (a detection with two catalogue stars
     within its radius or within ``CLAIM_SIGMAS`` centroid sigmas, or a star with two detections that close, is left
-    unidentified: which one made it is a guess; of two detections further apart the closest is the star's).  The
-    labelling radius is the match radius, widened when the scatter of the matched detections about their stars (measured
-    under the refined attitude, on 8 pairs or more) puts 4 standard deviations beyond it, up to 1.5 match radii: with 1
-    px of noise per axis, the 3 px default alone would leave about 1 % of the stars unlabelled
+    unidentified, which one made it being a guess (a scatter measured on the frame's pairs widens the claim radius:
+    :func:`~starenv.agents.identify.geometry.claim_scale2`); of two detections further apart the closest is the
+    star's).  The labelling radius is the match radius, widened when the scatter of the matched detections about their
+    stars (measured under the refined attitude, on 8 pairs or more) puts 4 standard deviations beyond it, up to 1.5
+    match radii: with 1 px of noise per axis, the 3 px default alone would leave about 1 % of the stars unlabelled
     (``exp(-4.5)``).  Verifying, refining and labelling compare the detections with the labelling stars (the database's
     first) of a cone about each head's boresight, found once for all three, by brute force (both sets are small), rather
     than through a k-d tree query a detection; for one head the cone's stars are those listed for the sky cell of its
@@ -99,6 +100,7 @@ from starenv.agents.identify.geometry import (
     ORDER_EDGES,
     STAR_ORDERS,
     chord,
+    claim_scale2,
     closest_per_star,
     mask_pairs,
     resolvable,
@@ -374,9 +376,9 @@ class LostInSpaceIdentifier:
                 if len(set(detections)) < len(detections):  # some with two or more: left out
                     alone = np.bincount(detection, minlength=len(ids))[detection] == 1
                     detection, star = detection[alone], star[alone]
-                # Each star's closest detection; a star with a second detection within CLAIM_SIGMAS of the
-                # centroid scatter (measured on those closest pairs, in match radii squared per axis) labels neither,
-                # and a detection with a second star that close is not labelled.
+                # Each star's closest detection; a star with a second detection within the claim radius (CLAIM_SIGMAS
+                # centroid sigmas, or claim_scale2 times the scatter measured on those closest pairs, in match radii
+                # squared per axis) labels neither, and a detection with a second star that close is not labelled.
                 dot = np.empty(len(ids))
                 dot.fill(-np.inf)
                 dot[detection] = dots[detection, star]
@@ -384,10 +386,11 @@ class LostInSpaceIdentifier:
                 star_of[detection] = star
                 detection, star = closest_per_star(detection, star_of, -dot)
                 radius2 = frame.radius2 if scalar else frame.radius2[detection]
-                variance = (self.centroid_noise_px / self.match_radius_px) ** 2
+                claim = CLAIM_SIGMAS**2 * (self.centroid_noise_px / self.match_radius_px) ** 2  # (match radii^2)
                 if len(detection) >= _SCATTER_PAIRS:  # (a sum over the count: np.mean's bits, less its overhead)
-                    variance = float(np.add.reduce((1.0 - dot[detection]) / radius2)) / len(detection)
-                claim2 = CLAIM_SIGMAS**2 * variance * (frame.radius2 if scalar else frame.radius2[:, None])
+                    claim = float(np.add.reduce((1.0 - dot[detection]) / radius2)) / len(detection)
+                    claim *= claim_scale2(len(detection))
+                claim2 = claim * (frame.radius2 if scalar else frame.radius2[:, None])
                 detection, star = sole_per_star(detection, star_of, dots >= 1.0 - 0.5 * claim2)
                 ids[detection] = (self._label_hip[nearby.rows] if nearby.hip is None else nearby.hip)[star]
         if len(stars) == 1:

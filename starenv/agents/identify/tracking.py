@@ -71,6 +71,7 @@ from starenv.agents.identify.geometry import (
     CLAIM_SIGMAS,
     MERGE_PX,
     body_vectors,
+    claim_scale2,
     closest_per_star,
     mask_pairs,
     resolvable,
@@ -283,8 +284,9 @@ class TrackingIdentifier:
     def _pair(body: np.ndarray, unit: np.ndarray, attitude: np.ndarray, radii: tuple) -> tuple:
         """(detections, rows of ``unit``) paired under ``attitude``: each detection with the one star within its
         squared radius ``radii[0]`` (rad^2, per detection), and only when no other detection lies within
-        ``CLAIM_SIGMAS`` centroid sigmas of that star (the scatter of each star's closest detection when there are
-        ``_SCATTER_PAIRS``, else ``radii[2]``, px^2 per axis, with ``radii[1]`` the squared plate scale, rad^2/px^2);
+        ``CLAIM_SIGMAS`` centroid sigmas of that star (``radii[2]``, px^2 per axis, with ``radii[1]`` the squared plate
+        scale, rad^2/px^2; or ``claim_scale2`` times the scatter of each star's closest detection when there are
+        ``_SCATTER_PAIRS``);
         of detections further apart the closest.  A detection with two stars or more within its radius or within
         ``CLAIM_SIGMAS`` centroid sigmas stays unpaired, and so do two detections by one star: which one made it is a
         guess (a pair a few px apart whose fainter star went undetected or is merged into the brighter in the
@@ -297,9 +299,10 @@ class TrackingIdentifier:
         alone = np.flatnonzero(within.sum(axis=1) == 1)
         closest = squared[np.arange(len(body)), nearest]
         first = closest_per_star(alone, nearest, closest)[0]  # (each star's closest detection)
+        claim2 = CLAIM_SIGMAS**2 * variance
         if len(first) >= _SCATTER_PAIRS:  # the centroid variance per axis (px^2) measured on those pairs
-            variance = 0.5 * (float((closest[first] / pixel2[first]).sum()) / len(first))  # (np.mean's bits)
-        return sole_per_star(first, nearest, squared <= (CLAIM_SIGMAS**2 * variance * pixel2)[:, None])
+            claim2 = 0.5 * (float((closest[first] / pixel2[first]).sum()) / len(first)) * claim_scale2(len(first))
+        return sole_per_star(first, nearest, squared <= (claim2 * pixel2)[:, None])
 
 
 class _Views(NamedTuple):

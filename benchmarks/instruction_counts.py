@@ -10,6 +10,9 @@ Workloads (inputs drawn from ``--seed``, default 8800: no test draws from it):
 
 - ``lis``: :class:`~starenv.agents.identify.LostInSpaceIdentifier` on ``--count`` centroid sets of
   ``benchmarks/identify_peers.py`` (paper 002's head, ``--fov`` 12 or 20 deg, ``--noise`` px per axis);
+- ``heads``: :class:`~starenv.agents.identify.LostInSpaceIdentifier` on ``--count`` frames of paper 004's three
+  heads (``benchmarks/multi_head_false_ids.py``'s: stars to Hp 6.5, the identifier on the catalogue to Hp 7.5,
+  ``--noise`` px per axis);
 - ``render``: :meth:`~starenv.sim.render.StarRenderer.render` of ``--count`` consecutive frames of
   ``benchmarks/env_speed.py``'s 1024 x 1024 env (30 px trails);
 - ``detect``: :class:`~starenv.agents.detect.CentroidDetector` on ``--count`` frames of ``benchmarks/detect_speed.py``
@@ -17,7 +20,7 @@ Workloads (inputs drawn from ``--seed``, default 8800: no test draws from it):
 
 Each workload is built and run once untimed, then counted over its ``--count`` calls.
 
-    python benchmarks/instruction_counts.py [--workloads lis,track,render,detect] [--count N] [--seed S] [--fov F]
+    python benchmarks/instruction_counts.py [--workloads lis,track,heads,render,detect] [--count N] [--seed S] [--fov F]
                                             [--noise PX]
 """
 
@@ -32,7 +35,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-WORKLOADS = ("lis", "track", "render", "detect")
+WORKLOADS = ("lis", "track", "heads", "render", "detect")
 TRACK_PRIOR_DEG = 0.5  # track: the prior's error, within the tracking gate's reach at 12 and 20 deg
 
 
@@ -63,6 +66,22 @@ def _workload(name: str, count: int, seed: int, fov: int, noise: float):
         cut = [(StarMeasurements(stars[k].xy[:TRACK_STARS], stars[k].flux[:TRACK_STARS]), priors[k])
                for k in sets["track"]]
         return [lambda s=s, p=p: identifier.identify([s], [camera], p) for s, p in cut]
+    if name == "heads":
+        from starenv import scenario as scenario_mod
+        from starenv.agents.base import StarMeasurements
+        from starenv.agents.identify import LostInSpaceIdentifier
+        from starenv.datasets.star_fields import centroid_set, random_attitude
+        from starenv.sim.sky import load_catalog
+
+        sc = scenario_mod.load("paper_004")
+        cameras = [head.calibrated for head in sc.heads]
+        visible, onboard = load_catalog(6.5, sc.epoch), load_catalog(7.5, sc.epoch)
+        identifier = LostInSpaceIdentifier()
+        identifier.reset(cameras, onboard)
+        rng = np.random.default_rng(seed)
+        sets = [centroid_set(visible, cameras, random_attitude(rng), noise, rng) for _ in range(count)]
+        frames = [[StarMeasurements(x, f) for x, f in zip(cs.xy, cs.flux, strict=True)] for cs in sets]
+        return [lambda stars=stars: identifier.identify(stars, cameras) for stars in frames]
     if name == "render":
         from env_speed import frame_env
 

@@ -727,10 +727,11 @@ class LostInSpaceIdentifier:
             per_head = np.bincount(heads)
             if per_head.max() >= 3:  # (else no head fixes the attitude alone)
                 anchor = int(per_head.argmax())
-                doubtful = self._unconfirmed_heads(frame, anchor, matched, nearby)
-                if doubtful:
-                    keep = ~np.isin(heads, doubtful)
-                    matched, rows = matched[keep], rows[keep]
+                if np.count_nonzero(per_head) > 1:  # (matches in other heads to confirm)
+                    doubtful = self._unconfirmed_heads(frame, anchor, matched, nearby)
+                    if doubtful:
+                        keep = ~np.isin(heads, doubtful)
+                        matched, rows = matched[keep], rows[keep]
         last, changed = None, True  # (changed: the last matching may differ from the matches fitted)
         for step in range(_GROW_STEPS + 1):  # (the last round matches in the plain radius only)
             attitude = wahba_svd(body[matched], unit[rows])

@@ -118,10 +118,11 @@ def unconfirmed_heads(body: np.ndarray, head: np.ndarray, matched: np.ndarray, a
     one roll multiply), with the most rolls and the largest chance of any of them, and are returned unless that
     passes."""
     found = np.bincount(head[matched], minlength=len(radius2))
-    pending = [h for h in np.unique(head).tolist() if h != anchor]
-    confirmed = [anchor]
+    pending = [h for h in np.flatnonzero(np.bincount(head)).tolist() if h != anchor]
+    confirmed = np.zeros(len(radius2), dtype=bool)
+    confirmed[anchor] = True
     while pending:
-        basis = matched[np.isin(head[matched], confirmed)]
+        basis = matched[confirmed[head[matched]]]
         basis_weight = weight if isinstance(weight, float) else weight[basis]
         left, searched = [], []  # per head left: (detections, rolls)
         for h in pending:
@@ -134,7 +135,7 @@ def unconfirmed_heads(body: np.ndarray, head: np.ndarray, matched: np.ndarray, a
                 left.append(h)
                 searched.append((len(rows), rolls))
             else:
-                confirmed.append(h)
+                confirmed[h] = True
         if len(left) == len(pending):
             break
         pending = left

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from starenv.agents.blocks import wahba_svd
 from starenv.agents.identify.verify import (
+    anchor_head,
     false_match_probability,
     pair_hypotheses,
     predicted_scatter,
@@ -229,3 +230,13 @@ def test_two_far_heads_under_one_loose_roll_are_tested_together():
     args = (0, SIGMA**-2, np.full(3, RADIUS**2), np.full(3, CHANCE), THRESHOLD)
     assert unconfirmed_heads(body, head, np.array([0, 1, 2, 3, 4, 5, 6, 11]), *args) == []
     assert unconfirmed_heads(body, head, np.array([0, 1, 2, 3, 4, 5, 6]), *args) == [1, 2]
+
+
+def test_the_anchor_is_the_head_with_most_matches_and_of_equals_the_one_with_fewest_detections():
+    # Heads of 4, 22 and 25 detections.  A head needs three matches to fix the attitude alone.
+    head = np.repeat([2, 1, 0], [4, 22, 25])[::-1].copy()  # (head 0 first: 25, then 22, then 4)
+    first = {h: int(np.flatnonzero(head == h)[0]) for h in range(3)}
+    matched = np.array([first[1] + k for k in range(4)] + [first[2] + k for k in range(4)] + [first[0]])
+    assert anchor_head(head, np.sort(matched)) == 2  # 4 and 4: the head of 4 detections, not the first
+    assert anchor_head(head, np.sort(np.append(matched, first[1] + 4))) == 1  # 5 against 4
+    assert anchor_head(head, np.array([first[0], first[1], first[1] + 1, first[2]])) is None

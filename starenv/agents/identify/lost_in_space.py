@@ -109,7 +109,7 @@ from starenv.agents.identify.geometry import (
     sole_per_star,
     with_ids,
 )
-from starenv.agents.identify.verify import predicted_scatter, unconfirmed_heads
+from starenv.agents.identify.verify import anchor_head, predicted_scatter, unconfirmed_heads
 from starenv.sim.optics import Camera, NoDistortion
 from starenv.sim.sky import StarCatalog
 
@@ -713,25 +713,22 @@ class LostInSpaceIdentifier:
         other heads by more than the match radius; so matching alternates with refining the attitude, each detection
         searched within its match radius widened by 3 sigma of its predicted direction under the attitude's
         covariance (:meth:`_widened`), until the matches stop changing.  The last matching uses the plain match
-        radius.  With several heads, the matches of a head other than the one with most of them (three or more)
-        enter the first fit, and the last, only when :meth:`_unconfirmed_heads` does not hold them back: a far
-        head's match under the loose roll can be a chance one, and in the fit it would pin the roll to itself,
-        shrink the head's predicted scatter and keep its own stars out of the widened search.  The detections of a
-        head held back at the end are not labelled.  A round whose fit keeps fewer than half the plain matches of
-        the round before (widened matches that were chance ones) is undone, and growing stops.
+        radius.  With several heads, the matches of a head other than the anchor (:func:`anchor_head`: most matches,
+        three or more) enter the first fit, and the last, only when :meth:`_unconfirmed_heads` does not hold them
+        back: a far head's match under the loose roll can be a chance one, and in the fit it would pin the roll to
+        itself, shrink the head's predicted scatter and keep its own stars out of the widened search.  The detections
+        of a head held back at the end are not labelled.  A round whose fit keeps fewer than half the plain matches
+        of the round before (widened matches that were chance ones) is undone, and growing stops.
         """
         body, unit = frame.body, self._label_unit
-        anchor = None
-        if frame.head is not None:
+        anchor = None if frame.head is None else anchor_head(frame.head, matched)
+        if anchor is not None:
             heads = frame.head[matched]
-            per_head = np.bincount(heads)
-            if per_head.max() >= 3:  # (else no head fixes the attitude alone)
-                anchor = int(per_head.argmax())
-                if np.count_nonzero(per_head) > 1:  # (matches in other heads to confirm)
-                    doubtful = self._unconfirmed_heads(frame, anchor, matched, nearby)
-                    if doubtful:
-                        keep = ~np.isin(heads, doubtful)
-                        matched, rows = matched[keep], rows[keep]
+            if np.any(heads != anchor):  # (matches in other heads to confirm)
+                doubtful = self._unconfirmed_heads(frame, anchor, matched, nearby)
+                if doubtful:
+                    keep = ~np.isin(heads, doubtful)
+                    matched, rows = matched[keep], rows[keep]
         last, changed = None, True  # (changed: the last matching may differ from the matches fitted)
         for step in range(_GROW_STEPS + 1):  # (the last round matches in the plain radius only)
             attitude = wahba_svd(body[matched], unit[rows])

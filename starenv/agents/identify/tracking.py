@@ -81,7 +81,12 @@ from starenv.agents.identify.geometry import (
     with_ids,
 )
 from starenv.agents.identify.lost_in_space import LostInSpaceIdentifier
-from starenv.agents.identify.verify import chance_match, false_match_probability, unconfirmed_heads
+from starenv.agents.identify.verify import (
+    anchor_head,
+    chance_match,
+    false_match_probability,
+    unconfirmed_heads,
+)
 from starenv.sim.optics import Camera
 from starenv.sim.sky import StarCatalog
 
@@ -230,11 +235,11 @@ class TrackingIdentifier:
             pairs = repaired
         if confirm is not None and len(pairs[0]):
             heads, pix, density = confirm
-            per_head = np.bincount(heads[pairs[0]], minlength=len(density))
-            if per_head.max() >= 3:  # (else no head fixes the attitude alone)
+            anchor = anchor_head(heads, pairs[0])
+            if anchor is not None:
                 radius2 = np.zeros(len(density))
                 radius2[heads] = radii[0]
-                dropped = unconfirmed_heads(body, heads, pairs[0], int(per_head.argmax()),
+                dropped = unconfirmed_heads(body, heads, pairs[0], anchor,
                                             1.0 / (self.centroid_noise_px * pix) ** 2, radius2,
                                             chance_match(density, np.sqrt(radius2)), self.max_false)
                 if dropped:

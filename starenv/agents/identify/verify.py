@@ -98,6 +98,16 @@ def predicted_scatter(basis: np.ndarray, weight: float | np.ndarray, directions:
     ]
 
 
+def anchor_head(head: np.ndarray, matched: np.ndarray) -> int | None:
+    """The head of ``head`` (pooled detections' heads) with most ``matched`` detections, three or more (None when
+    none has three: no head fixes the attitude alone); of equals, the one with fewest detections (chance matches come
+    with many)."""
+    per_head = np.bincount(head[matched], minlength=int(head.max()) + 1) if len(matched) else np.zeros(1, dtype=int)
+    if per_head.max() < 3:
+        return None
+    return int(np.lexsort((np.bincount(head, minlength=len(per_head)), -per_head))[0])
+
+
 def unconfirmed_heads(body: np.ndarray, head: np.ndarray, matched: np.ndarray, anchor: int,
                       weight: float | np.ndarray, radius2: np.ndarray, chance: np.ndarray,
                       threshold: float) -> list:
@@ -105,7 +115,8 @@ def unconfirmed_heads(body: np.ndarray, head: np.ndarray, matched: np.ndarray, a
     radius wider than the match radius may label by chance), ``anchor`` (a head whose matches fix the attitude alone)
     aside: pooled detections ``body`` (n, 3) of heads ``head`` (n,), their inverse centroid variance
     ``weight`` (rad^-2, a number or (n,)); per head its match radius squared ``radius2`` (rad^2) and the chance
-    ``chance`` that a detection lands that close to a star under a wrong attitude.
+    ``chance`` that a detection lands that close to a star under a wrong attitude; ``anchor`` as
+    :func:`anchor_head` gives it.
 
     One small head's matches leave the roll about it loose: another head's stars move by several match radii, and a
     detection there can land within the radius of a wrong star; taken into a fit, that one match pins the roll to

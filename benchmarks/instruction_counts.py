@@ -67,20 +67,16 @@ def _workload(name: str, count: int, seed: int, fov: int, noise: float):
                for k in sets["track"]]
         return [lambda s=s, p=p: identifier.identify([s], [camera], p) for s, p in cut]
     if name == "heads":
-        from starenv import scenario as scenario_mod
+        from multi_head_false_ids import draw_frames, heads_and_catalogues  # from benchmarks/
+
         from starenv.agents.base import StarMeasurements
         from starenv.agents.identify import LostInSpaceIdentifier
-        from starenv.datasets.star_fields import centroid_set, random_attitude
-        from starenv.sim.sky import load_catalog
 
-        sc = scenario_mod.load("paper_004")
-        cameras = [head.calibrated for head in sc.heads]
-        visible, onboard = load_catalog(6.5, sc.epoch), load_catalog(7.5, sc.epoch)
+        cameras, visible, onboard = heads_and_catalogues()
         identifier = LostInSpaceIdentifier()
         identifier.reset(cameras, onboard)
-        rng = np.random.default_rng(seed)
-        sets = [centroid_set(visible, cameras, random_attitude(rng), noise, rng) for _ in range(count)]
-        frames = [[StarMeasurements(x, f) for x, f in zip(cs.xy, cs.flux, strict=True)] for cs in sets]
+        frames = [[StarMeasurements(x, f) for x, f in zip(cs.xy, cs.flux, strict=True)]
+                  for cs, _ in draw_frames(visible, cameras, seed, count, noise, 2.0)]
         return [lambda stars=stars: identifier.identify(stars, cameras) for stars in frames]
     if name == "render":
         from env_speed import frame_env

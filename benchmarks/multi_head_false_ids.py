@@ -38,6 +38,25 @@ from starenv.sim.sky import load_catalog
 SEEDS = (5100, 5200, 5300)  # default seeds (no test draws from them)
 
 
+def heads_and_catalogues() -> tuple[list, object, object]:
+    """paper_004's calibrated cameras, the catalogue the frames hold (Hp <= 6.5) and the identifiers' (Hp <= 7.5,
+    deeper, as in paper004_identification.py)."""
+    sc = scenario_mod.load("paper_004")
+    return [h.calibrated for h in sc.heads], load_catalog(6.5, sc.epoch), load_catalog(7.5, sc.epoch)
+
+
+def draw_frames(visible, cameras: list, seed: int, count: int, noise_px: float, prior_deg: float) -> list:
+    """``count`` (centroid set, compass prior) of ``visible``'s stars at attitudes uniform on SO(3) drawn from
+    ``seed``, ``noise_px`` per axis, the prior off by ``prior_deg`` per axis (1 sigma)."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for _ in range(count):
+        attitude = random_attitude(rng)
+        cs = centroid_set(visible, cameras, attitude, noise_px, rng)
+        frames.append((cs, Rotation.from_rotvec(rng.normal(0.0, math.radians(prior_deg), 3)) * attitude))
+    return frames
+
+
 def count(identifier, cameras, frames: list, with_prior: bool, catalog) -> tuple[int, int, int, int, int]:
     """(frames with a wrong id, wrong ids, ids of a star merged with the true one, correct ids, stars) of
     ``identifier`` over ``frames``; ``catalog`` holds every star it can name."""
@@ -69,10 +88,7 @@ def main() -> None:
     parser.add_argument("--noise", type=float, nargs="+", default=[0.5, 1.0], help="centroid noise per axis (px)")
     parser.add_argument("--prior-deg", type=float, default=2.0, help="tracking prior's error per axis (1 sigma)")
     args = parser.parse_args()
-    sc = scenario_mod.load("paper_004")
-    cameras = [h.calibrated for h in sc.heads]
-    catalog = load_catalog(6.5, sc.epoch)  # the stars the frames hold
-    onboard = load_catalog(7.5, sc.epoch)  # the identifiers' catalogue, deeper (as paper004_identification.py)
+    cameras, catalog, onboard = heads_and_catalogues()
     lis = LostInSpaceIdentifier()
     lis.reset(cameras, onboard)
     tracker = TrackingIdentifier(fallback=lis)
@@ -84,13 +100,7 @@ def main() -> None:
     totals = {}
     for noise in args.noise:
         for seed in args.seeds:
-            rng = np.random.default_rng(seed)
-            frames = []
-            for _ in range(args.frames):
-                attitude = random_attitude(rng)
-                cs = centroid_set(catalog, cameras, attitude, noise, rng)
-                prior = Rotation.from_rotvec(rng.normal(0.0, math.radians(args.prior_deg), 3)) * attitude
-                frames.append((cs, prior))
+            frames = draw_frames(catalog, cameras, seed, args.frames, noise, args.prior_deg)
             for name, (identifier, with_prior) in methods.items():
                 start = time.perf_counter()
                 bad, wrong, merged, correct, present = count(identifier, cameras, frames, with_prior, onboard)

@@ -775,8 +775,8 @@ def test_multi_head_lost_in_space_at_1_px_never_takes_a_far_heads_chance_match(m
 
 
 def test_a_far_head_with_no_database_star_near_its_boresight_gets_the_skys_mean_chance(multi_head):
-    # Frame 371 of seed 92 at 1 px: head 0's three stars lie towards its corners, none of the database's within half
-    # a field of its boresight (checked), so the count there gives a chance of 0 that a detection lands on a star,
+    # Frame 371 of seed 92 at 1 px: head 0's stars lie towards its corners, none of the database's within half a
+    # field of its boresight (checked), so the count there gives a chance of 0 that a detection lands on a star,
     # and the head's one match, a chance one under the loose roll, would pass as certain.  The sky's mean density
     # bounds it from below; the test fails with the count alone.
     identifier, catalog = multi_head
@@ -791,10 +791,10 @@ def test_a_far_head_with_no_database_star_near_its_boresight_gets_the_skys_mean_
 
 
 def test_a_growth_round_broken_by_chance_matches_is_undone(multi_head):
-    # Frame 132 of seed 96 at 1 px: the anchor head's 6 matches leave the roll loose, and the widened search in a
-    # 30-detection far head takes chance stars with its own; their joint fit keeps no plain match, and growing on from
-    # it fitted nothing (a singular covariance: the call raised).  The round is undone and the frame labelled from
-    # the one before, with no wrong id.
+    # Frame 132 of seed 96 at 1 px (its heads' detections checked): the anchor head's matches leave the roll loose,
+    # and the widened search in the far head of 30 detections takes chance stars with its own; their joint fit keeps
+    # no plain match, and growing on from it fitted nothing (a singular covariance: the call raised).  The round is
+    # undone and the frame labelled from the one before, with no wrong id.
     identifier, catalog = multi_head
     rng = np.random.default_rng(96)
     for _ in range(133):

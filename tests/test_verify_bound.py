@@ -163,10 +163,10 @@ def _cluster(rng, axis: np.ndarray, count: int, radius_deg: float) -> np.ndarray
 
 @pytest.mark.parametrize("spread_deg, seed", [(3.0, 1), (40.0, 2)])
 def test_predicted_scatter_is_that_of_the_fitted_attitude_over_noisy_fits(spread_deg, seed):
-    # A small cluster leaves the roll about it loose (a far direction's scatter hundreds of times its own noise), a
-    # wide one does not.  The covariance sigma^2 (sum (I - b b'))^-1 is the first-order one of Wahba's problem with
+    # A small cluster leaves the roll about it loose (a far direction's scatter many times its own noise), a wide one
+    # does not.  The covariance sigma^2 (sum (I - b b'))^-1 is the first-order one of Wahba's problem with
     # equal weights; over 4000 noisy fits the mean squared displacement of each direction matches it within 10 %
-    # (the Monte Carlo's own spread is about 2 % at this count).
+    # (a mean of 4000 draws of a squared Gaussian has a relative sigma of sqrt(2 / 4000), about 2 %).
     rng = np.random.default_rng(seed)
     sigma = 1e-4
     basis = _cluster(rng, np.array([0.0, 0.0, 1.0]), 6, spread_deg)
